@@ -1,0 +1,1 @@
+"""The `cadreg` command line: one entry point, sub-commands in `*_cmd.py` modules and in plugins."""

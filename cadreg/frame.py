@@ -1,0 +1,92 @@
+"""One RGB-D query frame, validated once at the entry.
+
+Frames: the depth camera `depth`, the colour camera `color` (= "camera" of `T_map_camera`; labels are aligned
+with it). `T_color_depth` moves depth-camera points into the colour camera.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .camera import CameraIntrinsics
+from .errors import InvalidFrame
+
+
+@dataclass
+class Frame:
+    """An RGB-D frame.
+
+    depth : (H, W) uint16, `depth_scale` units per metre, 0 = invalid; H, W = depth_intrinsics size.
+    color : (h, w, 3) uint8 RGB; h, w = color_intrinsics size.
+    labels : (h, w) uint16 or uint8 label ids in `label_set`, aligned with colour; None when the client has none.
+    T_color_depth : (4, 4) float64 rigid transform, depth camera -> colour camera.
+    gravity_camera : (3,) unit vector of gravity ("down") in the colour camera frame, optional.
+    T_map_camera_prior : (4, 4) optional pose prior (colour camera -> map).
+    """
+
+    depth: np.ndarray
+    color: np.ndarray
+    depth_intrinsics: CameraIntrinsics
+    color_intrinsics: CameraIntrinsics
+    T_color_depth: np.ndarray = field(default_factory=lambda: np.eye(4))
+    depth_scale: float = 1000.0
+    labels: np.ndarray | None = None
+    label_set: str = "nyu40"
+    gravity_camera: np.ndarray | None = None
+    T_map_camera_prior: np.ndarray | None = None
+    frame_id: str | None = None
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self) -> None:
+        """Raise InvalidFrame naming the first thing wrong."""
+        d, c = self.depth, self.color
+        if not isinstance(d, np.ndarray) or d.ndim != 2:
+            raise InvalidFrame(f"depth must be a 2-D array, got shape {getattr(d, 'shape', None)}")
+        if d.dtype != np.uint16:
+            raise InvalidFrame(f"depth must be uint16, got {d.dtype}")
+        if (d.shape[1], d.shape[0]) != (self.depth_intrinsics.width, self.depth_intrinsics.height):
+            raise InvalidFrame(
+                f"depth is {d.shape[1]}x{d.shape[0]} but its intrinsics say "
+                f"{self.depth_intrinsics.width}x{self.depth_intrinsics.height}"
+            )
+        if not isinstance(c, np.ndarray) or c.ndim != 3 or c.shape[2] != 3 or c.dtype != np.uint8:
+            raise InvalidFrame(f"color must be (h, w, 3) uint8, got {getattr(c, 'shape', None)} {getattr(c, 'dtype', None)}")
+        if (c.shape[1], c.shape[0]) != (self.color_intrinsics.width, self.color_intrinsics.height):
+            raise InvalidFrame(
+                f"color is {c.shape[1]}x{c.shape[0]} but its intrinsics say "
+                f"{self.color_intrinsics.width}x{self.color_intrinsics.height}"
+            )
+        if self.labels is not None:
+            lb = self.labels
+            if not isinstance(lb, np.ndarray) or lb.ndim != 2 or lb.dtype not in (np.uint8, np.uint16):
+                raise InvalidFrame(f"labels must be a 2-D uint8/uint16 array, got {getattr(lb, 'shape', None)} {getattr(lb, 'dtype', None)}")
+            if lb.shape != c.shape[:2]:
+                raise InvalidFrame(f"labels are {lb.shape[1]}x{lb.shape[0]} but colour is {c.shape[1]}x{c.shape[0]}")
+        if not (np.isfinite(self.depth_scale) and self.depth_scale > 0):
+            raise InvalidFrame(f"depth_scale must be a positive number, got {self.depth_scale}")
+        T = np.asarray(self.T_color_depth, dtype=float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not _is_rigid(T):
+            raise InvalidFrame("T_color_depth must be a finite rigid 4x4 transform")
+        self.T_color_depth = T
+        if self.gravity_camera is not None:
+            g = np.asarray(self.gravity_camera, dtype=float).reshape(-1)
+            if g.shape != (3,) or not np.all(np.isfinite(g)) or np.linalg.norm(g) < 1e-6:
+                raise InvalidFrame("gravity must be a finite non-zero 3-vector")
+            self.gravity_camera = g / np.linalg.norm(g)
+        if self.T_map_camera_prior is not None:
+            P = np.asarray(self.T_map_camera_prior, dtype=float)
+            if P.shape != (4, 4) or not np.all(np.isfinite(P)) or not _is_rigid(P):
+                raise InvalidFrame("pose prior must be a finite rigid 4x4 transform")
+            self.T_map_camera_prior = P
+        if not np.any(d):
+            raise InvalidFrame("depth has no valid pixel (all zero)")
+
+
+def _is_rigid(T: np.ndarray, tol: float = 1e-3) -> bool:
+    R = T[:3, :3]
+    return bool(np.allclose(R @ R.T, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1.0) < tol
+                and np.allclose(T[3], [0, 0, 0, 1], atol=1e-9))

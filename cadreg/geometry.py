@@ -1,0 +1,93 @@
+"""Small rigid-transform helpers shared by every stage.
+
+All transforms are 4×4 float64 `T_<to>_<from>`; rotations 3×3 float64; quaternions (w, x, y, z) as in Scan2CAD.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def make_T(R: np.ndarray | None = None, t: np.ndarray | None = None) -> np.ndarray:
+    """4×4 float64 from a 3×3 rotation and a 3-vector translation (either may be omitted)."""
+    T = np.eye(4)
+    if R is not None:
+        T[:3, :3] = R
+    if t is not None:
+        T[:3, 3] = np.asarray(t, dtype=float).reshape(3)
+    return T
+
+
+def invert_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4×4 transform, without a general matrix inverse."""
+    R = T[:3, :3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ T[:3, 3]
+    return out
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """points : (n, 3) float in frame `from` -> (n, 3) float64 in frame `to`."""
+    points = np.asarray(points, dtype=np.float64)
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def quat_wxyz_to_R(q: np.ndarray) -> np.ndarray:
+    """(w, x, y, z) quaternion (any norm) -> 3×3 rotation."""
+    w, x, y, z = np.asarray(q, dtype=float)
+    return Rotation.from_quat([x, y, z, w]).as_matrix()
+
+
+def R_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    return np.array([w, x, y, z])
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a rotation matrix in degrees, robust to round-off."""
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """(translation error in metres, rotation error in degrees) between two poses of the same frames."""
+    dT = invert_T(T_true) @ T_est
+    return float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3])), rotation_angle_deg(dT[:3, :3])
+
+
+def kabsch(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Least-squares rigid T_target_source with target ≈ R @ source + t (paper eq. 9).
+
+    source, target : (n, 3) float, n >= 3 for a unique answer (n = 2 leaves a rotation about the axis free).
+    """
+    P = np.asarray(source, dtype=float)
+    Q = np.asarray(target, dtype=float)
+    w = np.ones(len(P)) if weights is None else np.asarray(weights, dtype=float)
+    w = w / w.sum()
+    mp = w @ P
+    mq = w @ Q
+    H = (P - mp).T @ ((Q - mq) * w[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return make_T(R, mq - R @ mp)
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Smallest rotation taking unit vector a onto unit vector b."""
+    a = np.asarray(a, float) / np.linalg.norm(a)
+    b = np.asarray(b, float) / np.linalg.norm(b)
+    v = np.cross(a, b)
+    c = float(a @ b)
+    if np.linalg.norm(v) < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        # 180°: any axis orthogonal to a
+        axis = np.cross(a, [1.0, 0.0, 0.0])
+        if np.linalg.norm(axis) < 1e-6:
+            axis = np.cross(a, [0.0, 1.0, 0.0])
+        return Rotation.from_rotvec(np.pi * axis / np.linalg.norm(axis)).as_matrix()
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + vx + vx @ vx * (1.0 / (1.0 + c))

@@ -1,0 +1,29 @@
+"""Shared fixtures: paths to the real data in ../shared/data and small helpers."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+# Keep the numeric libraries to one thread each: tests run beside other work on a 2-core machine.
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+SCENE0470 = SHARED_DATA / "scannet-scene0470_00"
+REDKITCHEN = SHARED_DATA / "7scenes-redkitchen" / "frames"
+
+
+@pytest.fixture(scope="session")
+def scene0470_dir() -> Path:
+    assert SCENE0470.is_dir(), f"real data missing: {SCENE0470}"
+    return SCENE0470
+
+
+@pytest.fixture(scope="session")
+def redkitchen_dir() -> Path:
+    assert REDKITCHEN.is_dir(), f"real data missing: {REDKITCHEN}"
+    return REDKITCHEN

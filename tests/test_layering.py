@@ -1,0 +1,54 @@
+"""Imports point one way (STYLE.md): cadreg -> nothing of ours; service -> cadreg; clients -> service wire only."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+FORBIDDEN = {
+    "cadreg": {"fastapi", "zenoh", "httpx", "uvicorn", "starlette", "service", "clients", "prometheus_client"},
+    "service": {"clients"},
+    "clients": set(),
+}
+# clients may use only the service's wire schemas, codec and error table
+CLIENTS_MAY_IMPORT_FROM_SERVICE = {"service.schemas", "service.codec", "service.errors"}
+
+
+def _imports(path: Path) -> list[str]:
+    tree = ast.parse(path.read_text(), filename=str(path))
+    names: list[str] = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.append(node.module)
+    return names
+
+
+def test_imports_point_one_way() -> None:
+    bad = []
+    for package, forbidden in FORBIDDEN.items():
+        for path in (REPO / package).rglob("*.py"):
+            for name in _imports(path):
+                top = name.split(".")[0]
+                if top in forbidden:
+                    bad.append(f"{path.relative_to(REPO)} imports {name}")
+                if package == "clients" and top == "service" and name not in CLIENTS_MAY_IMPORT_FROM_SERVICE:
+                    bad.append(f"{path.relative_to(REPO)} imports {name} (clients use only the wire modules)")
+    assert not bad, "\n".join(bad)
+
+
+def test_core_has_no_print_or_environment() -> None:
+    bad = []
+    for path in (REPO / "cadreg").rglob("*.py"):
+        if "cli" in path.relative_to(REPO / "cadreg").parts:
+            continue  # the CLI is a runner: it owns output
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "print":
+                bad.append(f"{path.relative_to(REPO)}:{node.lineno} print()")
+            if isinstance(node, ast.Attribute) and node.attr == "environ":
+                bad.append(f"{path.relative_to(REPO)}:{node.lineno} os.environ")
+    assert not bad, "\n".join(bad)
