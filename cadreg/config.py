@@ -34,6 +34,12 @@ class GraphConfig(_Section):
     edge_max_m: float = Field(1.5, gt=0, description="δ: centroid pairs at most this far apart get an edge")
     cluster_tolerance_m: float = Field(0.05, gt=0, description="class-wise Euclidean clustering of uncovered labelled map points")
     min_cluster_points: int = Field(50, ge=1, description="smaller clusters are noise, not objects")
+    stacked_merge_overlap: float = Field(
+        0.5, ge=0, le=1, description="same-class clusters one above the other (seat and base of a swivel chair) "
+        "merge when their horizontal boxes overlap by this fraction of the smaller; 1 = only full cover, 0 = off")
+    remnant_margin_m: float = Field(
+        0.15, ge=0, description="a cluster of a CAD's class lying within this of the CAD's box is a leftover of that "
+        "object (labels bleed past the CAD), not an object of its own")
 
 
 class SiteBuildConfig(_Section):
@@ -50,14 +56,15 @@ class FrameConfig(_Section):
     min_depth_m: float = Field(0.1, ge=0)
     max_depth_m: float = Field(6.0, gt=0)
     pixel_stride: int = Field(2, ge=1, description="use every n-th depth pixel: halves time at no loss (DESIGN §9)")
-    voxel_size_m: float = Field(0.02, gt=0, description="voxel down-sampling of the frame points")
+    voxel_size_m: float = Field(0.03, gt=0, description="voxel down-sampling of the frame points for clustering and scoring")
+    score_points: int = Field(300, ge=20, description="frame points used to score each hypothesis on the distance field")
 
 
 class ClusterConfig(_Section):
     """Class-wise Euclidean clustering of the frame (paper §2.3.1)."""
 
-    tolerance_m: float = Field(0.05, gt=0)
-    min_points: int = Field(30, ge=1)
+    tolerance_m: float = Field(0.07, gt=0, description="points of one class closer than this are one object (> 2 voxels)")
+    min_points: int = Field(25, ge=1, description="smaller clusters (at the frame voxel size) are label noise")
 
 
 class MatchConfig(_Section):
@@ -65,7 +72,27 @@ class MatchConfig(_Section):
 
     alpha: float = Field(0.5, ge=0, description="weight of node similarity S_V in Sim")
     beta: float = Field(0.5, ge=0, description="weight of edge similarity S_E in Sim")
-    top_k: int = Field(5, ge=1)
+    top_k: int = Field(5, ge=1, description="hypotheses reported in the result")
+    edge_max_m: float = Field(1.5, gt=0, description="δ: scan objects at most this far apart form an edge")
+    yaw_step_deg: float = Field(10.0, gt=0, le=90, description="yaw sweep for single-object hypotheses (gravity known)")
+    pair_tolerance_m: float = Field(0.4, gt=0, description="centroid distances of matched pairs may differ by this "
+                                    "(partially seen objects have shifted centroids)")
+    dense_below_objects: int = Field(2, ge=0, description="with at most this many scan objects, single-object "
+                                     "hypotheses also try offset centroids")
+    offset_step_m: float = Field(0.2, gt=0, description="grid step of those offsets")
+    max_offset_m: float = Field(0.6, ge=0, description="largest offset (also capped at half the node's extent)")
+    match_radius_m: float = Field(0.6, gt=0, description="a scan object within this of a map node of its class matches it")
+    score_tau_m: float = Field(0.1, gt=0, description="distance-field inlier scale of the geometric check")
+    screen_keep: int = Field(300, ge=1, description="hypotheses kept after the quick geometric screen")
+    sim_weight: float = Field(0.25, ge=0, le=1, description="share of Sim in the coarse ranking (the rest is geometric)")
+    candidates: int = Field(8, ge=1, description="distinct best hypotheses pulled in by a coarse GICP and re-ranked")
+    semantic_weight: float = Field(0.5, ge=0, le=1, description="share of label agreement with the map in the "
+                                   "ranking of coarse-aligned hypotheses")
+    color_weight: float = Field(0.3, ge=0, le=1, description="share of colour agreement with the map in that ranking")
+    ambiguity_margin: float = Field(0.03, ge=0, description="a distinct runner-up within this fitness of the best is ambiguous")
+    refine_contenders: int = Field(3, ge=1, description="when ambiguous, this many best hypotheses are refined fully")
+    distinct_translation_m: float = Field(0.3, gt=0)
+    distinct_rotation_deg: float = Field(15.0, gt=0)
 
 
 class RefineConfig(_Section):
@@ -73,13 +100,28 @@ class RefineConfig(_Section):
 
     roi_radius_m: float = Field(3.0, gt=0, description="γ: the map is cropped to this radius around the hypothesis")
     epsilon: float = Field(1e-3, gt=0, description="ε: stop when the update is below this")
-    method: Literal["color_gicp", "small_gicp", "open3d_colored_icp"] = "color_gicp"
+    method: Literal["color_gicp", "small_gicp", "open3d_colored_icp"] = "small_gicp"
+    map_points: Literal["raw", "enhanced", "both"] = Field("raw", description="which map the frame is refined against")
+    fine_voxel_m: float = Field(0.025, gt=0, description="map resolution for small_gicp")
+    coarse_voxel_m: float = Field(0.08, gt=0, description="map and frame resolution of the coarse check of hypotheses")
+    source_voxel_m: float = Field(0.04, gt=0, description="frame resolution for the fine refinement")
+    max_correspondence_m: float = Field(0.1, gt=0)
+    max_iterations: int = Field(30, ge=1)
+    color_scales_m: tuple[float, ...] = Field((0.08, 0.04, 0.02), min_length=1, description="colour GICP scales, coarse to fine")
+    color_weight_m: float = Field(0.05, ge=0, description="λ: metres of joint-space distance per unit of Lab/100")
+    inlier_m: float = Field(0.05, gt=0, description="a frame point this close to the map is an inlier")
+    min_fitness: float = Field(0.5, ge=0, le=1, description="below this inlier fraction the result is low_overlap")
 
 
 class FallbackConfig(_Section):
     """Geometric global registration when the graph has too little to say."""
 
-    voxel_size_m: float = Field(0.05, gt=0)
+    enabled: bool = True
+    voxel_size_m: float = Field(0.05, gt=0, description="FPFH + RANSAC resolution")
+    grid_step_m: float = Field(0.2, gt=0, description="position step of the floor-constrained (x, y, yaw) search")
+    yaw_step_deg: float = Field(10.0, gt=0, le=90)
+    min_graph_fitness: float = Field(0.9, ge=0, le=1, description="below this coarse fitness the graph's best is "
+                                     "checked against the fallback too")
 
 
 class LocalizeConfig(_Section):
@@ -88,3 +130,60 @@ class LocalizeConfig(_Section):
     match: MatchConfig = MatchConfig()
     refine: RefineConfig = RefineConfig()
     fallback: FallbackConfig = FallbackConfig()
+
+
+# --- rendering and fusion (query frames from a mesh; maps from recorded frames) ---------------------------------
+
+
+class NoiseConfig(_Section):
+    """Kinect-like depth noise for rendered frames (axial σ(z) = a + b·(z − z0)², Nguyen et al. 2012)."""
+
+    axial_a_m: float = Field(0.0012, ge=0, description="constant part of the axial depth noise σ")
+    axial_b_per_m: float = Field(0.0019, ge=0, description="quadratic part of σ, metres per metre²")
+    axial_z0_m: float = Field(0.4, ge=0, description="depth at which σ is smallest")
+    edge_jump_m: float = Field(0.08, gt=0, description="a 4-neighbour this much nearer or farther marks a depth edge")
+    edge_dropout_p: float = Field(0.6, ge=0, le=1, description="probability of losing a pixel on a depth edge")
+    grazing_start_deg: float = Field(70.0, ge=0, le=90, description="incidence angle where grazing dropout begins")
+    grazing_full_deg: float = Field(82.0, ge=0, le=90, description="incidence angle beyond which no depth returns")
+    random_dropout_p: float = Field(0.01, ge=0, le=1, description="uniform random loss of depth pixels")
+    min_depth_m: float = Field(0.4, ge=0, description="the sensor sees nothing nearer")
+    max_depth_m: float = Field(6.0, gt=0, description="the sensor sees nothing farther")
+    color_sigma: float = Field(2.0, ge=0, description="Gaussian colour noise, 8-bit levels")
+
+
+class RenderConfig(_Section):
+    """Query-frame rendering: cameras and how a person walking the room holds one (z up)."""
+
+    depth_width: int = Field(640, gt=0)
+    depth_height: int = Field(480, gt=0)
+    depth_fx: float = Field(577.87, gt=0, description="ScanNet's depth camera")
+    depth_fy: float = Field(577.87, gt=0)
+    depth_cx: float = Field(319.5)
+    depth_cy: float = Field(239.5)
+    color_width: int | None = Field(None, gt=0, description="None = the depth camera's size and intrinsics")
+    color_height: int | None = Field(None, gt=0)
+    baseline_m: float = Field(0.025, description="depth -> colour offset along x when the colour camera differs")
+    height_min_m: float = Field(1.2, ge=0, description="camera height above the floor")
+    height_max_m: float = Field(1.75, ge=0)
+    pitch_min_deg: float = Field(15.0, ge=-90, le=90, description="downward pitch")
+    pitch_max_deg: float = Field(45.0, ge=-90, le=90)
+    roll_max_deg: float = Field(5.0, ge=0, le=90)
+    min_clearance_m: float = Field(0.3, ge=0, description="reject camera positions nearer than this to any surface")
+    min_valid_fraction: float = Field(0.5, ge=0, le=1, description="reject views with fewer valid depth pixels")
+    min_visible_objects: int = Field(1, ge=0, description="keep views that see at least this many object instances")
+    min_object_fraction: float = Field(0.005, ge=0, le=1, description="an object counts as seen above this image fraction")
+    max_attempts_per_frame: int = Field(500, ge=1, description="give up when this many candidate poses fail in a row")
+    color_format: Literal["png", "jpg"] = "png"
+
+
+class FuseConfig(_Section):
+    """TSDF fusion of recorded frames into a map (Open3D VoxelBlockGrid)."""
+
+    voxel_size_m: float = Field(0.012, gt=0)
+    sdf_trunc_voxels: float = Field(4.0, gt=0, description="truncation distance in voxels")
+    depth_max_m: float = Field(4.0, gt=0, description="depth beyond this is not fused")
+    block_resolution: int = Field(16, ge=4, le=32)
+    block_count: int = Field(60000, ge=1000, description="initial hash-map capacity (grows on demand)")
+    weight_threshold: float = Field(2.0, ge=0, description="surface points need this much integration weight")
+    label_frame_stride: int = Field(5, ge=1, description="vote labels from every n-th labelled frame")
+    label_depth_tolerance_m: float = Field(0.03, gt=0, description="a label vote needs the point within this of the depth")

@@ -27,3 +27,20 @@ def scene0470_dir() -> Path:
 def redkitchen_dir() -> Path:
     assert REDKITCHEN.is_dir(), f"real data missing: {REDKITCHEN}"
     return REDKITCHEN
+
+
+@pytest.fixture(scope="session")
+def scene0470_site_dir(scene0470_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The scene0470 site bundle (scan + NYU40 labels + the 7 Scan2CAD CADs), built once per test session (~2 s)."""
+    from cadreg.site.build import build_site
+
+    out = tmp_path_factory.mktemp("sites") / "scene0470"
+    site = build_site(
+        scene0470_dir / "scene0470_00_vh_clean_2.ply",
+        labels_ply=scene0470_dir / "scene0470_00_vh_clean_2.labels.ply",
+        scan2cad_json=scene0470_dir / "scan2cad_annotation.json",
+        cad_root=scene0470_dir / "shapenet",
+        site_id="scene0470",
+    )
+    site.save(out)
+    return out

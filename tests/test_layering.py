@@ -23,7 +23,11 @@ def _imports(path: Path) -> list[str]:
         if isinstance(node, ast.Import):
             names += [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            names.append(node.module)
+            if node.module in ("service", "clients", "cadreg"):
+                # `from service import codec` imports the module service.codec
+                names += [f"{node.module}.{a.name}" for a in node.names]
+            else:
+                names.append(node.module)
     return names
 
 

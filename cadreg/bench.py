@@ -1,0 +1,234 @@
+"""The benchmark: several methods on the same recorded frames, scored against their ground-truth poses.
+
+Methods (`METHODS`):
+- `cadreg` — the localizer as configured; `cadreg:<refine method>` with another refinement (REFINE_METHODS).
+- `cadreg-nolabels` — the localizer with the frame's labels removed (exercises the fallback on labelled data).
+- `fpfh-ransac` — Open3D FPFH + RANSAC + ICP on the whole map, no initial guess (the baseline).
+- `refine-from-gt-perturbed[:<refine method>]` — the refinement alone, started from the ground truth moved by
+  20 cm along a random direction and rotated 10° about a random axis (seeded per frame), then brought in by
+  the localizer's own path from a hypothesis (coarse GICP at RefineConfig.coarse_voxel_m, then the fine method).
+
+This module is a runner: it owns timing. It does no file I/O and prints nothing; the CLI does.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import small_gicp
+from scipy.spatial.transform import Rotation
+
+from .frame import Frame
+from .geometry import invert_T, make_T, pose_errors, transform_points
+from .localize.localizer import Localizer
+from .localize.points import frame_to_points
+from .localize.refine import REFINE_METHODS
+from .result import SUCCESS_STATUSES, Status
+
+BASE_METHODS = ("cadreg", "cadreg-nolabels", "fpfh-ransac", "refine-from-gt-perturbed")
+METHODS = BASE_METHODS + tuple(f"cadreg:{m}" for m in REFINE_METHODS) + tuple(
+    f"refine-from-gt-perturbed:{m}" for m in REFINE_METHODS)
+
+
+@dataclass
+class FrameOutcome:
+    """One method on one frame. errors are inf when no pose came back."""
+
+    index: int
+    status: str
+    translation_m: float
+    rotation_deg: float
+    total_ms: float
+    stage_ms: dict[str, float] = field(default_factory=dict)
+    objects_in_view: int = 0
+
+
+def check_method(name: str) -> str:
+    if name not in METHODS:
+        raise ValueError(f"unknown bench method {name!r}; choose from {', '.join(METHODS)}")
+    return name
+
+
+def objects_in_view(site, frame: Frame, T_map_camera: np.ndarray, *, occlusion_m: float = 0.5) -> int:
+    """Map graph nodes whose centroid projects into the frame and is not hidden behind the depth by > occlusion_m."""
+    if not site.graph.nodes:
+        return 0
+    cent = np.array([np.asarray(n.centroid, float) for n in site.graph.nodes])
+    T_depth_map = invert_T(T_map_camera @ frame.T_color_depth)
+    p = transform_points(T_depth_map, cent)
+    K = frame.depth_intrinsics
+    z = p[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.rint(K.fx * p[:, 0] / z + K.cx)
+        v = np.rint(K.fy * p[:, 1] / z + K.cy)
+    ok = (z > 0.2) & (u >= 0) & (u < K.width) & (v >= 0) & (v < K.height)
+    count = 0
+    for i in np.flatnonzero(ok):
+        d = frame.depth[int(v[i]), int(u[i])] / frame.depth_scale
+        if d == 0 or d >= z[i] - occlusion_m:
+            count += 1
+    return count
+
+
+def perturb(T: np.ndarray, rng: np.random.Generator, *, translation_m: float = 0.2, rotation_deg: float = 10.0) -> np.ndarray:
+    """T moved by exactly translation_m along a random direction and rotated by rotation_deg about a random axis."""
+    d = rng.normal(size=3)
+    a = rng.normal(size=3)
+    R = Rotation.from_rotvec(np.radians(rotation_deg) * a / np.linalg.norm(a)).as_matrix()
+    out = T.copy()
+    out[:3, :3] = R @ T[:3, :3]
+    out[:3, 3] = T[:3, 3] + translation_m * d / np.linalg.norm(d)
+    return out
+
+
+class Bench:
+    """Runs methods on frames; one Localizer serves every cadreg method."""
+
+    def __init__(self, site, localizer: Localizer, *, seed: int = 0) -> None:
+        self.site = site
+        self.localizer = localizer
+        self.seed = seed
+
+    def run_one(self, method: str, index: int, frame: Frame, T_true: np.ndarray) -> FrameOutcome:
+        loc = self.localizer
+        rc = loc.config.refine
+        t0 = time.perf_counter()
+        stage_ms: dict[str, float] = {}
+        if method.startswith("cadreg"):
+            refine = method.split(":", 1)[1] if ":" in method else None
+            f = replace(frame, labels=None) if method == "cadreg-nolabels" else frame
+            res = loc.localize(f, method=refine)
+            T, status, stage_ms = res.T_map_camera, res.status.value, dict(res.diagnostics.stage_ms)
+        elif method == "fpfh-ransac":
+            pts = frame_to_points(frame, pixel_stride=loc.config.frame.pixel_stride)
+            T, _ = loc.fpfh().register(pts.xyz)
+            fit, _ = loc.refine_map.fitness(transform_points(T, pts.xyz[:: max(1, len(pts) // 2000)]), inlier_m=rc.inlier_m)
+            status = Status.OK.value if fit >= rc.min_fitness else Status.LOW_OVERLAP.value
+            T = T if status == Status.OK.value else None
+        elif method.startswith("refine-from-gt-perturbed"):
+            refine = method.split(":", 1)[1] if ":" in method else rc.method
+            rng = np.random.default_rng([self.seed, index])
+            T_init = perturb(T_true, rng)
+            t0 = time.perf_counter()
+            pts = frame_to_points(frame, pixel_stride=loc.config.frame.pixel_stride)
+            # The localizer's own path from a hypothesis: a coarse GICP, then the fine refinement.
+            src, _ = small_gicp.preprocess_points(pts.xyz, rc.coarse_voxel_m, num_neighbors=10)
+            T_coarse = loc.refine_map.coarse_align(src, T_init, max_correspondence_m=0.5)
+            out = loc.refine_map.refine(pts, T_coarse, method=refine, epsilon=rc.epsilon, source_voxel_m=rc.source_voxel_m,
+                                        max_correspondence_m=rc.max_correspondence_m, max_iterations=rc.max_iterations)
+            T, status = out.T_map_camera, Status.OK.value
+        else:
+            raise ValueError(f"unknown bench method {method!r}")
+        total_ms = (time.perf_counter() - t0) * 1000.0
+        if T is None:
+            te, re_ = float("inf"), float("inf")
+        else:
+            te, re_ = pose_errors(np.asarray(T), T_true)
+        return FrameOutcome(index, status, te, re_, total_ms, stage_ms)
+
+
+def _stat(values: Iterable[float], q: float) -> float | None:
+    v = np.asarray(list(values), dtype=float)
+    if len(v) == 0:
+        return None
+    # A missing pose is an infinite error; percentiles of inf warn, so sort it past every finite value instead.
+    x = float(np.percentile(np.where(np.isfinite(v), v, 1e300), q))
+    return x if x < 1e250 else None
+
+
+def summarize(outcomes: list[FrameOutcome]) -> dict:
+    """Summary of one method (DESIGN §8 keys, plus breakdowns)."""
+    n = len(outcomes)
+    te = np.array([o.translation_m for o in outcomes])
+    re_ = np.array([o.rotation_deg for o in outcomes])
+    s5 = (te <= 0.05) & (re_ <= 5.0)
+    s10 = (te <= 0.10) & (re_ <= 10.0)
+    status_counts: dict[str, int] = {}
+    for o in outcomes:
+        status_counts[o.status] = status_counts.get(o.status, 0) + 1
+    stages = sorted({k for o in outcomes for k in o.stage_ms})
+    by_objects: dict[str, dict] = {}
+    for key, sel in (("0", lambda k: k == 0), ("1", lambda k: k == 1), ("2", lambda k: k == 2), ("3+", lambda k: k >= 3)):
+        idx = [i for i, o in enumerate(outcomes) if sel(o.objects_in_view)]
+        if idx:
+            by_objects[key] = {"frames": len(idx), "success_5cm_5deg": float(s5[idx].mean()),
+                               "success_10cm_10deg": float(s10[idx].mean())}
+    ms = [o.total_ms for o in outcomes]
+    return {
+        "frames": n,
+        "success_5cm_5deg": float(s5.mean()) if n else 0.0,
+        "success_10cm_10deg": float(s10.mean()) if n else 0.0,
+        # Over all frames, a frame without a pose counting as an infinite error (null when the median is one).
+        "median_translation_m": _stat(te, 50),
+        "median_rotation_deg": _stat(re_, 50),
+        "p90_translation_m": _stat(te, 90),
+        "p90_rotation_deg": _stat(re_, 90),
+        "median_ms": _stat(ms, 50),
+        "p90_ms": _stat(ms, 90),
+        "stage_ms": {s: {"p50": _stat([o.stage_ms.get(s, 0.0) for o in outcomes], 50),
+                         "p90": _stat([o.stage_ms.get(s, 0.0) for o in outcomes], 90)} for s in stages},
+        "status_counts": status_counts,
+        "by_objects_in_view": by_objects,
+        "failed_frames": [o.index for o, ok in zip(outcomes, s5) if not ok],
+    }
+
+
+def run_bench(site, frames, methods: list[str], *, localizer: Localizer | None = None, limit: int | None = None,
+              seed: int = 0, progress: Callable[[int, int], None] | None = None,
+              warn: Callable[[str], None] | None = None) -> dict:
+    """Run `methods` on every frame of `frames` (a RecordedFrames) that has a ground-truth pose.
+
+    Returns {"frames": N, "skipped": [...], "methods": {name: summary}}.
+    """
+    for m in methods:
+        check_method(m)
+    localizer = localizer or Localizer.from_site(site)
+    bench = Bench(site, localizer, seed=seed)
+    indices = list(frames.indices)
+    if limit is not None:
+        indices = indices[:limit]
+    outcomes: dict[str, list[FrameOutcome]] = {m: [] for m in methods}
+    skipped: list[int] = []
+    for k, i in enumerate(indices):
+        frame, T_true = frames.load(i)
+        if T_true is None or not np.all(np.isfinite(T_true)):
+            skipped.append(int(i))
+            if warn:
+                warn(f"frame {i} has no ground-truth pose: skipped")
+        else:
+            n_obj = objects_in_view(site, frame, T_true)
+            for m in methods:
+                o = bench.run_one(m, int(i), frame, T_true)
+                o.objects_in_view = n_obj
+                outcomes[m].append(o)
+        if progress:
+            progress(k + 1, len(indices))
+    n = len(indices) - len(skipped)
+    return {"frames": n, "skipped": skipped, "methods": {m: summarize(o) for m, o in outcomes.items()}}
+
+
+def format_table(report: dict) -> str:
+    """A plain-text summary table of a `run_bench` report."""
+    def f(x, scale=1.0, digits=1):
+        return "-" if x is None else f"{x * scale:.{digits}f}"
+
+    lines = [f"frames: {report['frames']}" + (f" (skipped without pose: {len(report['skipped'])})" if report["skipped"] else "")]
+    head = f"{'method':34s} {'@5cm/5°':>8s} {'@10cm/10°':>9s} {'med t cm':>8s} {'p90 t cm':>8s} {'med r °':>7s} {'p90 r °':>7s} {'med ms':>7s} {'p90 ms':>7s}  statuses"
+    lines.append(head)
+    for name, s in report["methods"].items():
+        st = " ".join(f"{k}={v}" for k, v in sorted(s["status_counts"].items()))
+        lines.append(f"{name:34s} {100 * s['success_5cm_5deg']:7.1f}% {100 * s['success_10cm_10deg']:8.1f}% "
+                     f"{f(s['median_translation_m'], 100, 2):>8s} {f(s['p90_translation_m'], 100, 2):>8s} "
+                     f"{f(s['median_rotation_deg'], 1, 2):>7s} {f(s['p90_rotation_deg'], 1, 2):>7s} "
+                     f"{f(s['median_ms'], 1, 0):>7s} {f(s['p90_ms'], 1, 0):>7s}  {st}")
+    for name, s in report["methods"].items():
+        if s["stage_ms"]:
+            parts = " ".join(f"{k}={f(v['p50'], 1, 0)}/{f(v['p90'], 1, 0)}" for k, v in s["stage_ms"].items())
+            lines.append(f"  {name} stage ms p50/p90: {parts}")
+        if s["by_objects_in_view"]:
+            parts = " ".join(f"{k}: {100 * v['success_5cm_5deg']:.0f}% of {v['frames']}" for k, v in s["by_objects_in_view"].items())
+            lines.append(f"  {name} @5cm/5° by map objects in view: {parts}")
+    return "\n".join(lines)

@@ -1,0 +1,70 @@
+"""`cadreg bench`: several methods on the same recorded frames, with a summary table and optional JSON."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from tqdm import tqdm
+
+log = logging.getLogger("cadreg.bench")
+
+
+def register(sub) -> None:
+    from ..bench import METHODS
+
+    p = sub.add_parser("bench", help="benchmark localization methods on recorded frames with ground-truth poses",
+                       description="Run each --method on the same frames; time is per frame on this process "
+                                   "(run with OMP_NUM_THREADS=1 for one-core figures).")
+    p.add_argument("--site", required=True, type=Path, help="site bundle directory")
+    p.add_argument("--frames", required=True, type=Path, help="recorded frames folder (poses = ground truth)")
+    p.add_argument("--method", action="append", choices=METHODS, metavar="NAME",
+                   help=f"repeatable; one of {', '.join(METHODS)} (default: cadreg)")
+    p.add_argument("--range", dest="index_range", default=None, metavar="A:B",
+                   help="only frames whose number i has A <= i < B (e.g. 250:500 for 7-Scenes queries)")
+    p.add_argument("--limit", type=int, default=None, help="first N frames only (after --range)")
+    p.add_argument("--map-points", choices=("raw", "enhanced", "both"), default=None,
+                   help="which map the refinement uses (default: RefineConfig.map_points)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the perturbations of refine-from-gt-perturbed")
+    p.add_argument("--json", type=Path, default=None, help="write the report as JSON here")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..bench import format_table, run_bench
+    from ..io.frames import RecordedFrames
+    from ..localize.localizer import Localizer
+    from ..site.bundle import Site
+
+    from ..config import LocalizeConfig, RefineConfig
+    from ..errors import ConfigError
+
+    site = Site.load(args.site)
+    frames = RecordedFrames.open(args.frames)
+    if args.index_range:
+        try:
+            a, b = (int(x) for x in args.index_range.split(":"))
+        except ValueError as exc:
+            raise ConfigError(f"--range must be A:B with integers, got {args.index_range!r}") from exc
+        frames.indices = [i for i in frames.indices if a <= i < b]
+    methods = args.method or ["cadreg"]
+    config = LocalizeConfig()
+    if args.map_points:
+        config = config.model_copy(update={"refine": RefineConfig(**{**config.refine.model_dump(), "map_points": args.map_points})})
+    localizer = Localizer.from_site(site, config)
+    n = len(frames.indices) if args.limit is None else min(args.limit, len(frames.indices))
+    bar = tqdm(total=n, desc="bench", unit="frame", file=sys.stderr)
+
+    def progress(done: int, total: int) -> None:
+        bar.update(done - bar.n)
+
+    report = run_bench(site, frames, methods, localizer=localizer, limit=args.limit, seed=args.seed,
+                       progress=progress, warn=log.warning)
+    bar.close()
+    print(format_table(report))
+    if args.json:
+        args.json.write_text(json.dumps(report, indent=2))
+    return 0

@@ -1,0 +1,193 @@
+"""`cadreg render`: rendered query frames (depth, colour, labels, poses) from a labelled mesh or a site's mesh."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+
+from tqdm import tqdm
+
+from ..config import NoiseConfig, RenderConfig
+from ..errors import ConfigError
+
+log = logging.getLogger("cadreg.render")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "render",
+        help="render RGB-D query frames from a labelled mesh",
+        description="Ray-cast depth, colour and labels at hand-held camera poses inside the room (or at --poses) and "
+                    "write a recorded-frames folder (ScanNet layout, pose/<i>.txt = T_map_camera).",
+    )
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--site", type=Path, help="site bundle: renders the scan mesh it was built from (site.json "
+                     "inputs), or a Poisson mesh of its points when that mesh is not at hand")
+    src.add_argument("--mesh", type=Path, help="coloured mesh PLY (z up, metres)")
+    p.add_argument("--labels", type=Path, help="PLY with the same vertices and a per-vertex 'label' (NYU40)")
+    p.add_argument("--out", type=Path, required=True, help="frames folder to write")
+    p.add_argument("--n", type=int, default=0, help="number of frames (default: all --poses)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-noise", action="store_true", help="noiseless depth and colour")
+    p.add_argument("--color-size", type=int, nargs=2, metavar=("W", "H"), help="colour camera size (default = depth)")
+    p.add_argument("--baseline-m", type=float, help="depth -> colour offset along x when the sizes differ")
+    p.add_argument("--height", type=float, nargs=2, metavar=("MIN_M", "MAX_M"), help="camera height above floor")
+    p.add_argument("--pitch", type=float, nargs=2, metavar=("MIN_DEG", "MAX_DEG"), help="downward pitch range")
+    p.add_argument("--min-visible-objects", type=int, help="keep views seeing at least this many objects")
+    p.add_argument("--poses", type=Path, help="render these poses (file of stacked 4x4 or a folder) instead of sampling")
+    p.add_argument("--jpg", action="store_true", help="write colour as JPEG (as ScanNet) instead of PNG")
+    p.set_defaults(func=run)
+
+
+def _mesh_paths_from_site(site_dir: Path) -> tuple[Path, Path | None] | None:
+    """The scan mesh (and labels PLY) a site was built from, as recorded in its site.json `inputs`; None when the
+    site records none that exists here (fused sites, bundles copied without their inputs)."""
+    from ..io.bundle_files import read_json
+
+    meta = read_json(site_dir / "site.json")
+    inputs = meta.get("inputs") or {} if isinstance(meta, dict) else {}
+
+    def _path(key: str) -> Path | None:
+        v = inputs.get(key)
+        if isinstance(v, dict):
+            v = v.get("path")
+        if not v:
+            return None
+        p = Path(v)
+        # build_site records paths as it was given them: relative to where it ran, or to the bundle.
+        return p if p.is_absolute() or p.exists() else (site_dir / p)
+
+    scan, labels = _path("scan"), _path("labels")
+    if scan is None or not scan.is_file():
+        return None
+    return scan, labels if labels is not None and labels.is_file() else None
+
+
+def load_site_mesh(site_dir: Path):
+    """(LabelledMesh, description) for `render --site`: the scan mesh the site was built from when it is still at
+    hand (best: the real scan's geometry and colours), else a Poisson mesh of the site's raw points."""
+    from ..render import LabelledMesh
+    from ..render.mesh import mesh_from_site
+    from ..site.bundle import Site
+
+    paths = _mesh_paths_from_site(site_dir)
+    if paths is not None:
+        return LabelledMesh.from_ply(*paths), str(paths[0])
+    log.warning("site %s records no scan mesh that exists here: rendering a Poisson mesh of its points", site_dir)
+    return mesh_from_site(Site.load(site_dir)), f"poisson mesh of {site_dir}"
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..io.frames import read_poses
+    from ..render import LabelledMesh, render_frames
+
+    overrides: dict = {}
+    if args.color_size:
+        overrides["color_width"], overrides["color_height"] = args.color_size
+    if args.baseline_m is not None:
+        overrides["baseline_m"] = args.baseline_m
+    if args.height:
+        overrides["height_min_m"], overrides["height_max_m"] = args.height
+    if args.pitch:
+        overrides["pitch_min_deg"], overrides["pitch_max_deg"] = args.pitch
+    if args.min_visible_objects is not None:
+        overrides["min_visible_objects"] = args.min_visible_objects
+    if args.jpg:
+        overrides["color_format"] = "jpg"
+    try:
+        config = RenderConfig(**overrides)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from exc
+    if config.height_min_m > config.height_max_m or config.pitch_min_deg > config.pitch_max_deg:
+        raise ConfigError("--height and --pitch take MIN MAX with MIN <= MAX")
+    if args.site is not None:
+        mesh, mesh_desc = load_site_mesh(args.site)
+    else:
+        mesh, mesh_desc = LabelledMesh.from_ply(args.mesh, args.labels), str(args.mesh)
+    poses = read_poses(args.poses) if args.poses else None
+    if poses is None and args.n <= 0:
+        raise ConfigError("--n must be positive (or give --poses)")
+    n = args.n if args.n > 0 else len(poses or [])
+    if poses is not None:
+        poses = poses[:n]
+        n = len(poses)
+    with tqdm(total=n, desc="render", unit="frame") as bar:
+        def progress(done: int, total: int) -> None:
+            bar.update(done - bar.n)
+
+        frames = render_frames(
+            mesh, args.out, n, seed=args.seed, config=config,
+            noise=None if args.no_noise else NoiseConfig(), poses=poses, progress=progress,
+        )
+    vis = [f.visible_objects for f in frames]
+    print(json.dumps({
+        "frames": len(frames), "out": str(args.out), "mesh": mesh_desc,
+        "visible_objects": {"min": min(vis), "mean": round(sum(vis) / len(vis), 2), "max": max(vis)},
+    }))
+    return 0
+
+
+# --- `cadreg site fuse` (registered by site_cmd.py under `cadreg site`) ------------------------------------------
+
+
+def register_site_fuse(site_sub: argparse._SubParsersAction) -> None:
+    f = site_sub.add_parser(
+        "fuse", help="build a site bundle by TSDF fusion of recorded frames with poses",
+        description="TSDF-fuse a recorded-frames folder (ScanNet or 7-Scenes layout) at its poses; labels, when the "
+                    "frames carry them, are voted onto the fused points and become clustered object nodes.",
+    )
+    f.add_argument("--frames", required=True, type=Path, help="recorded-frames folder with poses")
+    f.add_argument("--range", dest="frame_range", help="A:B = frames with index A <= i < B (default: all)")
+    f.add_argument("--out", required=True, type=Path, help="bundle directory to write")
+    f.add_argument("--site-id", help="site id (default: the frames folder's name)")
+    f.add_argument("--voxel-m", type=float, help="TSDF voxel size in metres")
+    f.add_argument("--depth-max-m", type=float, help="depth beyond this is not fused")
+    f.set_defaults(func=_site_fuse)
+
+
+def parse_range(text: str | None, indices: list[int]) -> list[int]:
+    """'A:B' -> the indices i with A <= i < B (either end may be left out); None -> all."""
+    if not text:
+        return list(indices)
+    parts = text.split(":")
+    if len(parts) != 2:
+        raise ConfigError(f"--range must be A:B, got {text!r}")
+    try:
+        lo = int(parts[0]) if parts[0] else None
+        hi = int(parts[1]) if parts[1] else None
+    except ValueError:
+        raise ConfigError(f"--range must be A:B with integers, got {text!r}") from None
+    out = [i for i in indices if (lo is None or i >= lo) and (hi is None or i < hi)]
+    if not out:
+        raise ConfigError(f"--range {text} selects no frame")
+    return out
+
+
+def _site_fuse(args: argparse.Namespace) -> int:
+    from ..config import FuseConfig
+    from ..io.frames import RecordedFrames
+    from ..site.fuse import fuse_site
+
+    frames = RecordedFrames.open(args.frames)
+    indices = parse_range(args.frame_range, frames.indices)
+    overrides = {}
+    if args.voxel_m is not None:
+        overrides["voxel_size_m"] = args.voxel_m
+    if args.depth_max_m is not None:
+        overrides["depth_max_m"] = args.depth_max_m
+    try:
+        config = FuseConfig(**overrides)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from exc
+    site_id = args.site_id or (frames.root.name if frames.root.name != "frames" else frames.root.parent.name)
+    with tqdm(total=100, desc="site fuse", unit="%") as bar:
+        def progress(done: int, total: int) -> None:
+            bar.update(done - bar.n)
+
+        site = fuse_site(frames, indices, site_id=site_id, config=config, progress=progress)
+    site.save(args.out)
+    print(json.dumps({"site_id": site.site_id, "version": site.version, "frames": len(indices),
+                      "points": int(len(site.points)), "nodes": len(site.graph.nodes), "out": str(args.out)}))
+    return 0

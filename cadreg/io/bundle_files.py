@@ -1,0 +1,72 @@
+"""File I/O of site bundles and build inputs: hashing, reading and writing the bundle's files.
+
+The bundle logic (what goes in which file, integrity rules) lives in `cadreg/site/bundle.py`; this module only
+moves bytes, so that the core's file access stays in `cadreg/io/`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from ..errors import InvalidFileError
+
+
+def sha256_bytes(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def sha256_file(path: str | Path) -> str:
+    """Hex sha256 of a file's bytes; InvalidFileError when it cannot be read."""
+    path = Path(path)
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+    except OSError as exc:
+        raise InvalidFileError(path, f"cannot read: {exc.strerror or exc}") from exc
+    return h.hexdigest()
+
+
+def read_json(path: str | Path) -> Any:
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except OSError as exc:
+        raise InvalidFileError(path, f"cannot read: {exc.strerror or exc}") from exc
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InvalidFileError(path, f"not valid JSON: {exc}") from exc
+
+
+def read_bytes(path: str | Path) -> bytes:
+    path = Path(path)
+    try:
+        return path.read_bytes()
+    except OSError as exc:
+        raise InvalidFileError(path, f"cannot read: {exc.strerror or exc}") from exc
+
+
+def write_bundle_dir(out_dir: str | Path, files: dict[str, bytes]) -> None:
+    """Write the files of a bundle into `out_dir` (created if needed).
+
+    Each file goes to a temporary name first and is renamed into place, and `site.json` (the file that vouches for
+    the others) is renamed last, so a reader never sees a new site.json beside half-written data.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    order = sorted(files, key=lambda name: (name == "site.json", name))
+    for name in order:
+        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", dir=out)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(files[name])
+            os.chmod(tmp, 0o644)  # mkstemp makes 0600; a service under another user must read the bundle
+            os.replace(tmp, out / name)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise

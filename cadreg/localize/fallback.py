@@ -1,0 +1,97 @@
+"""Geometric global registration for frames the graph cannot place (no labels, too few objects, no match).
+
+`floor_grid_search`: with the up direction and the camera height known from a visible floor, only (x, y, yaw)
+remain; they are searched exhaustively on a grid over the map's footprint, scored on the distance field.
+`FpfhRansac`: Open3D FPFH features + RANSAC + point-to-plane ICP on the whole map with no initial guess (the
+baseline, and the last resort when there is no up direction).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .match import Hypotheses, yaw_rotations
+from .score import DistanceField, score_poses
+
+
+def floor_grid_search(field: DistanceField, points_level: np.ndarray, up: np.ndarray, camera_up_m: float, *,
+                      step_m: float = 0.2, yaw_step_deg: float = 10.0, keep: int = 200,
+                      min_clearance_m: float = 0.15, tau_m: float = 0.15, R_level: np.ndarray | None = None) -> Hypotheses:
+    """3-DoF search over camera positions (x, y at the floor-given height) and yaws.
+
+    points_level : (m, 3) frame points rotated so that the camera's up is `up` (R_level @ p_camera).
+    camera_up_m : camera centre's coordinate along `up`, map frame. Positions closer than `min_clearance_m` to
+    the map are skipped (a camera is not inside a wall). Returns the `keep` best hypotheses (R includes R_level).
+    """
+    lo = field.origin
+    hi = field.origin + field.dims * field.voxel_m
+    # Two horizontal axes orthogonal to up.
+    e1 = np.cross(up, [1.0, 0.0, 0.0])
+    if np.linalg.norm(e1) < 1e-3:
+        e1 = np.cross(up, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    a = corners @ e1
+    b = corners @ e2
+    ga, gb = np.meshgrid(np.arange(a.min(), a.max(), step_m), np.arange(b.min(), b.max(), step_m), indexing="ij")
+    pos = ga.reshape(-1, 1) * e1 + gb.reshape(-1, 1) * e2 + camera_up_m * up
+    pos = pos[field.lookup(pos) >= min_clearance_m]
+    # Positions outside the map's grid read the truncation distance: drop those far outside the footprint.
+    ijk = np.floor((pos - field.origin) / field.voxel_m)
+    pos = pos[np.all((ijk >= 0) & (ijk < field.dims), axis=1)]
+    if len(pos) == 0:
+        return Hypotheses.empty()
+    yaws = np.radians(np.arange(0.0, 360.0, yaw_step_deg))
+    Ryaw = yaw_rotations(up, yaws)
+    rotated = np.einsum("yij,mj->ymi", Ryaw, points_level)  # (y, m, 3)
+    scores = np.empty((len(yaws), len(pos)))
+    for k in range(len(yaws)):
+        d = field.lookup(rotated[k][None, :, :] + pos[:, None, :])
+        scores[k] = np.clip(1.0 - (d / tau_m) ** 2, 0.0, 1.0).mean(axis=1)
+    flat = np.argsort(scores.ravel())[::-1][:keep]
+    yi, pi = np.unravel_index(flat, scores.shape)
+    R = Ryaw[yi]
+    if R_level is not None:
+        R = R @ R_level
+    hyp = Hypotheses(R, pos[pi], np.stack([np.full(len(pi), -1), np.full(len(pi), -1)], axis=1))
+    hyp.geometric = scores[yi, pi]
+    return hyp
+
+
+class FpfhRansac:
+    """Open3D FPFH + RANSAC + ICP against the whole map; the map's features are computed once."""
+
+    def __init__(self, map_xyz: np.ndarray, *, voxel_m: float = 0.05, seed: int = 0) -> None:
+        import open3d as o3d
+
+        self.voxel_m = voxel_m
+        self.seed = seed
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(map_xyz, dtype=np.float64)))
+        self.target = pcd.voxel_down_sample(voxel_m)
+        self.target_fpfh = self._features(self.target)
+
+    def _features(self, pcd):
+        import open3d as o3d
+
+        v = self.voxel_m
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * v, max_nn=30))
+        return o3d.pipelines.registration.compute_fpfh_feature(pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * v, max_nn=100))
+
+    def register(self, xyz_camera: np.ndarray, *, max_iterations: int = 100000, confidence: float = 0.999) -> tuple[np.ndarray, float]:
+        """(T_map_camera (4, 4), RANSAC fitness) for frame points (m, 3) in the camera frame."""
+        import open3d as o3d
+
+        reg = o3d.pipelines.registration
+        o3d.utility.random.seed(self.seed)
+        v = self.voxel_m
+        src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(xyz_camera, dtype=np.float64))).voxel_down_sample(v)
+        fpfh = self._features(src)
+        res = reg.registration_ransac_based_on_feature_matching(
+            src, self.target, fpfh, self.target_fpfh, True, 1.5 * v,
+            reg.TransformationEstimationPointToPoint(False), 3,
+            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * v)],
+            reg.RANSACConvergenceCriteria(max_iterations, confidence))
+        icp = reg.registration_icp(src, self.target, 0.4 * v * 2, res.transformation,
+                                   reg.TransformationEstimationPointToPlane())
+        return np.asarray(icp.transformation), float(icp.fitness)

@@ -1,0 +1,227 @@
+"""Gravity and floor: the camera's up direction and height from a visible floor, and the map's floor height.
+
+A known up direction leaves 4 degrees of freedom (yaw + translation); a visible floor also fixes the camera's
+height above it, leaving 3 (x, y, yaw).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# Label ids meaning "floor" per label set; NYU40 floor = 2 (ScanNet, the renderer), ScanNet-20 floor = 2 too.
+FLOOR_LABELS: dict[str, tuple[int, ...]] = {"nyu40": (2,), "scannet20": (2,), "scannet": (2,)}
+
+
+@dataclass
+class Floor:
+    """Up direction and floor in the colour-camera frame.
+
+    up_camera : (3,) float64 unit vector opposite to gravity, camera frame.
+    height_m : camera centre's height above the floor, metres; None when only the direction is known.
+    source : "floor" (plane fitted on floor-labelled points) | "client" (gravity given with the frame) |
+        "surfaces" (the frame's flat surfaces, `estimate_up_from_normals`).
+    inliers : number of floor points supporting the plane (0 for client gravity).
+    """
+
+    up_camera: np.ndarray
+    height_m: float | None
+    source: str
+    inliers: int = 0
+    floor_guess_m: float | None = None  # height above the lowest horizontal plane seen (maybe a table top)
+
+
+def fit_plane(points: np.ndarray, *, threshold_m: float = 0.02, iterations: int = 60,
+              rng: np.random.Generator | None = None) -> tuple[np.ndarray, float, np.ndarray] | None:
+    """RANSAC plane n·x = c on (n, 3) points, refined by least squares on the inliers.
+
+    Returns (unit normal (3,), c, inlier mask) or None when there are too few points.
+    Written by hand: Open3D's segment_plane needs a tensor/legacy cloud round trip that costs more than this.
+    """
+    n = len(points)
+    if n < 20:
+        return None
+    rng = rng or np.random.default_rng(0)
+    sample = rng.integers(0, n, size=(iterations, 3))
+    a, b, c = points[sample[:, 0]], points[sample[:, 1]], points[sample[:, 2]]
+    normals = np.cross(b - a, c - a)
+    norm = np.linalg.norm(normals, axis=1)
+    good = norm > 1e-9
+    if not np.any(good):
+        return None
+    normals = normals[good] / norm[good, None]
+    offsets = np.einsum("ij,ij->i", normals, a[good])
+    probe = points if n <= 3000 else points[rng.choice(n, 3000, replace=False)]
+    support = (np.abs(probe @ normals.T - offsets) < threshold_m).sum(axis=0)
+    best = int(np.argmax(support))
+    inl = np.abs(points @ normals[best] - offsets[best]) < threshold_m
+    if inl.sum() < 3:
+        return None
+    centre = points[inl].mean(axis=0)
+    _, _, Vt = np.linalg.svd(points[inl] - centre, full_matrices=False)
+    normal = Vt[2]
+    return normal, float(normal @ centre), np.abs(points @ normal - normal @ centre) < threshold_m
+
+
+def estimate_floor(xyz: np.ndarray, labels: np.ndarray, label_set: str, *,
+                   gravity_camera: np.ndarray | None = None, min_floor_points: int = 150,
+                   max_tilt_from_client_deg: float = 20.0, use_surfaces: bool = True) -> Floor | None:
+    """Up direction (and camera height) of a frame.
+
+    xyz : (n, 3) float colour-camera frame; labels : (n,) int label ids (-1 = none).
+    gravity_camera : (3,) "down" from the client, if any. A floor plane that disagrees with it by more than
+    `max_tilt_from_client_deg` is ignored (it is not the floor). With neither floor nor client gravity, the
+    up direction comes from the frame's flat surfaces when `use_surfaces` (no height then).
+    """
+    floor_ids = FLOOR_LABELS.get(label_set.lower(), ())
+    mask = np.isin(labels, floor_ids) if floor_ids else np.zeros(len(xyz), bool)
+    if mask.sum() >= min_floor_points:
+        fit = fit_plane(xyz[mask])
+        if fit is not None:
+            normal, c, inl = fit
+            # The camera (origin) is above the floor: orient the normal towards it.
+            if c > 0:
+                normal, c = -normal, -c
+            height = -c
+            agrees = True
+            if gravity_camera is not None:
+                agrees = float(normal @ -gravity_camera) > np.cos(np.radians(max_tilt_from_client_deg))
+            if agrees and int(inl.sum()) >= min_floor_points // 2 and height > 0.05:
+                return Floor(normal, float(height), "floor", int(inl.sum()))
+    if gravity_camera is not None:
+        up = -np.asarray(gravity_camera, float)
+        return Floor(up / np.linalg.norm(up), None, "client")
+    if use_surfaces:
+        return estimate_up_from_normals(xyz)
+    return None
+
+
+def map_floor_height(points: np.ndarray, normals: np.ndarray | None, up: np.ndarray, *, bin_m: float = 0.02) -> float:
+    """Height of the map's floor along `up` (metres, map frame).
+
+    points, normals : (n, 3) float map frame. The floor is the most populated height bin, among points whose
+    normal is vertical, in the lower third of the map's height range.
+    """
+    h = points @ up
+    keep = np.ones(len(h), bool)
+    if normals is not None and len(normals) == len(points):
+        keep = np.abs(normals @ up) > 0.9
+    lo, hi = np.percentile(h, 0.5), np.percentile(h, 99.5)
+    keep &= h < lo + (hi - lo) / 3
+    if keep.sum() < 10:
+        return float(lo)
+    hk = h[keep]
+    edges = np.arange(hk.min(), hk.max() + 2 * bin_m, bin_m)
+    counts, edges = np.histogram(hk, bins=edges)
+    i = int(np.argmax(counts))
+    inbin = hk[(hk >= edges[i]) & (hk <= edges[i + 1])]
+    return float(np.median(inbin))
+
+
+def planar_normals(xyz: np.ndarray, *, k: int = 12, max_points: int = 3000, max_flatness: float = 0.05,
+                   rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(points (m, 3), unit normals (m, 3)) of up to `max_points` sampled points whose k-neighbourhood is flat.
+
+    Flat: smallest / middle covariance eigenvalue below `max_flatness`.
+    """
+    from scipy.spatial import cKDTree
+
+    rng = rng or np.random.default_rng(0)
+    if len(xyz) < k + 1:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    sample = xyz if len(xyz) <= max_points else xyz[rng.choice(len(xyz), max_points, replace=False)]
+    _, nn = cKDTree(xyz).query(sample, k=k)
+    nb = xyz[nn] - xyz[nn].mean(axis=1, keepdims=True)
+    w, U = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
+    flat = w[:, 0] < max_flatness * np.maximum(w[:, 1], 1e-12)
+    return sample[flat], U[flat, :, 0]
+
+
+def estimate_up_from_normals(xyz: np.ndarray, *, max_roll_deg: float = 25.0, pitch_range_deg: tuple[float, float] = (-30.0, 90.0),
+                             step_deg: float = 2.0, tolerance_deg: float = 6.0, min_horizontal: int = 20,
+                             min_vertical: int = 150) -> Floor | None:
+    """Up direction from the frame's flat surfaces when no floor is labelled.
+
+    Indoors, flat surfaces are horizontal (floor, table tops, seats) or vertical (walls, doors). A camera held by
+    a person has a small roll: the up direction is searched over pitch and a bounded roll, scoring normals that
+    are parallel to it (horizontal surfaces, weighted double) or perpendicular (vertical ones); then refined as
+    the mean of the parallel normals. Walls alone leave the up direction on a circle: then the smallest roll on
+    it is taken.
+    """
+    points, normals = planar_normals(xyz, max_points=1000)
+    if len(normals) < min_horizontal:
+        return None
+    pitch = np.radians(np.arange(pitch_range_deg[0], pitch_range_deg[1] + 1e-9, step_deg))
+    roll = np.radians(np.arange(-max_roll_deg, max_roll_deg + 1e-9, step_deg))
+    P, Rr = np.meshgrid(pitch, roll, indexing="ij")
+    P, Rr = P.ravel(), Rr.ravel()
+    # Up of a camera with OpenCV axes (y down), pitched down by P and rolled by Rr.
+    up0 = np.stack([np.zeros_like(P), -np.cos(P), -np.sin(P)], axis=1)
+    cu, su = np.cos(Rr), np.sin(Rr)
+    up = np.stack([cu * up0[:, 0] - su * up0[:, 1], su * up0[:, 0] + cu * up0[:, 1], up0[:, 2]], axis=1)
+    dots = np.abs(normals @ up.T)  # (m, c)
+    par = dots > np.cos(np.radians(tolerance_deg))
+    perp = dots < np.sin(np.radians(tolerance_deg))
+    # Ties (walls only) go to the smallest roll.
+    score = 2.0 * par.sum(axis=0) + perp.sum(axis=0) - 0.01 * np.abs(np.degrees(Rr))
+    best = int(np.argmax(score))
+    u = up[best]
+    if par[:, best].sum() < min_horizontal:
+        if perp[:, best].sum() < min_vertical:
+            return None
+        return Floor(u, None, "surfaces", int(perp[:, best].sum()))
+    n = normals[par[:, best]]
+    n = n * np.sign(n @ u)[:, None]
+    u = n.mean(axis=0)
+    u /= np.linalg.norm(u)
+    # The lowest horizontal plane with some support: the floor when it is in view, else whatever is lowest.
+    below = -(points[par[:, best]] @ u)
+    guess = None
+    if len(below):
+        counts, edges = np.histogram(below, bins=np.arange(below.min(), below.max() + 0.04, 0.02))
+        ok = np.flatnonzero(counts >= max(5, 0.1 * len(below)))
+        if len(ok):
+            k = ok[-1]
+            guess = float(np.median(below[(below >= edges[k]) & (below <= edges[k + 1])]))
+    return Floor(u, None, "surfaces", int(par[:, best].sum()), floor_guess_m=guess)
+
+
+def map_up_axis(normals: np.ndarray, *, tolerance_deg: float = 5.0, sample: int = 20000, candidates: int = 400,
+                snap_deg: float = 3.0, z_keep_ratio: float = 0.8, seed: int = 0) -> np.ndarray:
+    """The map's up direction (3,) from its surface normals, for sites that do not state it.
+
+    Indoors, the most common normal direction with the most perpendicular ones (walls) is vertical: every
+    candidate (a sampled normal) is scored by normals parallel to it plus half those perpendicular; the best is
+    refined as the mean of its parallel normals. Sign: floors and table tops face up and outnumber ceilings.
+    A box-shaped room scores its three axes alike, so +z (the convention of ScanNet, of the demo site and of
+    most building scans) is kept unless another direction scores clearly better.
+    """
+    rng = np.random.default_rng(seed)
+    n = np.asarray(normals, dtype=np.float64)
+    n = n[np.linalg.norm(n, axis=1) > 0.5]
+    if len(n) > sample:
+        n = n[rng.choice(len(n), sample, replace=False)]
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    cand = n[rng.choice(len(n), min(candidates, len(n)), replace=False)]
+    cand = np.vstack([[0.0, 0.0, 1.0], cand])
+    dots = np.abs(n @ cand.T)
+    par = dots > np.cos(np.radians(tolerance_deg))
+    perp = dots < np.sin(np.radians(tolerance_deg))
+    score = par.sum(axis=0) + 0.5 * perp.sum(axis=0)
+    best = int(np.argmax(score))
+    if score[0] >= z_keep_ratio * score[best]:
+        return np.array([0.0, 0.0, 1.0])
+    p = n[par[:, best]]
+    p = p * np.sign(p @ cand[best])[:, None]
+    u = p.mean(axis=0)
+    u /= np.linalg.norm(u)
+    # Sign: most of the horizontal surfaces face up.
+    if np.sum(n[par[:, best]] @ u > 0) < np.sum(n[par[:, best]] @ u < 0):
+        u = -u
+    # Scans are mostly built gravity-aligned (ScanNet: z up); a floor that is not quite flat should not tilt
+    # the map by a degree or two, so an axis within snap_deg wins.
+    k = int(np.argmax(np.abs(u)))
+    if abs(u[k]) > np.cos(np.radians(snap_deg)):
+        u = np.sign(u[k]) * np.eye(3)[k]
+    return u

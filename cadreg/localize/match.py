@@ -1,0 +1,287 @@
+"""Coarse graph matching (paper §2.4, eq. 5–9), done so that edge directions are only compared under a rotation.
+
+Hypotheses come from rotation-invariant evidence (classes, centroid distances): with a known up direction a pair
+of scan objects matched to a pair of map nodes fixes yaw and translation, a single object gives a yaw sweep; with
+no up direction, triples of objects give a 6-DoF pose by Kabsch (eq. 9). Every hypothesis is then scored by the
+paper's Sim = α·S_V + β·S_E (eq. 6–8) with scan edge directions rotated into the map by the hypothesis, and by a
+geometric check of the frame points against the map's distance field (`score.py`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from itertools import combinations, permutations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..geometry import kabsch, rotation_angle_deg
+
+
+@dataclass
+class MapGraph:
+    """The site's semantic graph as arrays, map frame.
+
+    ids : node ids (str). cls : (k,) int class index (into Site.classes). centroid : (k, 3) float64, metres.
+    extent : (k, 3) float64 box extent (its own axes), metres; zeros when unknown.
+    """
+
+    ids: list[str]
+    cls: np.ndarray
+    centroid: np.ndarray
+    extent: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    top: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (k,) highest point of the box along up, metres
+
+    @classmethod
+    def from_site(cls, site, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> "MapGraph":
+        names = list(site.classes)
+        nodes = [n for n in site.graph.nodes if n.cls in names]
+        tops = []
+        for n in nodes:
+            R = getattr(n, "box_R", None)
+            ext = getattr(n, "box_extent", None)
+            centre = getattr(n, "box_center", None)
+            if R is None or ext is None or centre is None:
+                tops.append(float(np.asarray(n.centroid, float) @ up))
+            else:
+                tops.append(float(np.asarray(centre, float) @ up + 0.5 * np.abs(np.asarray(R, float).T @ up) @ np.asarray(ext, float)))
+        graph = cls(
+            [str(n.id) for n in nodes],
+            np.array([names.index(n.cls) for n in nodes], dtype=np.int64),
+            np.array([np.asarray(n.centroid, float) for n in nodes]).reshape(-1, 3),
+            np.array([np.asarray(getattr(n, "box_extent", None) if getattr(n, "box_extent", None) is not None
+                                 else np.zeros(3), float) for n in nodes]).reshape(-1, 3),
+            np.array(tops, dtype=float),
+        )
+        return graph
+
+
+@dataclass
+class Hypotheses:
+    """A batch of pose hypotheses T_map_camera = [R | t].
+
+    R : (h, 3, 3), t : (h, 3) float64. seed : (h, 2) int, the (scan object, map node) pair that generated each
+    (map node -1 for fallback seeds). Scores are filled by `score_graph` / the geometric check.
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    seed: np.ndarray
+    s_v: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    s_e: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    sim: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    geometric: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    assignment: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
+
+    def __len__(self) -> int:
+        return len(self.R)
+
+    @classmethod
+    def empty(cls) -> "Hypotheses":
+        return cls(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 2), dtype=np.int64))
+
+    @classmethod
+    def concat(cls, parts: list["Hypotheses"]) -> "Hypotheses":
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return cls.empty()
+        return cls(np.concatenate([p.R for p in parts]), np.concatenate([p.t for p in parts]),
+                   np.concatenate([p.seed for p in parts]))
+
+    def take(self, index: np.ndarray) -> "Hypotheses":
+        def pick(a: np.ndarray) -> np.ndarray:
+            return a[index] if len(a) == len(self.R) else a
+        return Hypotheses(self.R[index], self.t[index], self.seed[index], pick(self.s_v), pick(self.s_e),
+                          pick(self.sim), pick(self.geometric), pick(self.assignment))
+
+    def T(self, i: int) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = self.R[i]
+        T[:3, 3] = self.t[i]
+        return T
+
+
+def yaw_rotations(up: np.ndarray, yaw_rad: np.ndarray) -> np.ndarray:
+    """(h,) angles -> (h, 3, 3) rotations about the unit axis `up`."""
+    return Rotation.from_rotvec(np.outer(yaw_rad, up)).as_matrix().reshape(-1, 3, 3)
+
+
+def _horizontal_grid(up: np.ndarray, reach_m: float, step_m: float) -> np.ndarray:
+    """(o, 3) non-zero offsets orthogonal to `up` on a square grid of `step_m` within a disc of `reach_m`."""
+    n = int(np.floor(reach_m / step_m))
+    if n < 1:
+        return np.zeros((0, 3))
+    e1 = np.cross(up, [1.0, 0.0, 0.0])
+    if np.linalg.norm(e1) < 1e-3:
+        e1 = np.cross(up, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    a, b = np.meshgrid(np.arange(-n, n + 1) * step_m, np.arange(-n, n + 1) * step_m, indexing="ij")
+    a, b = a.ravel(), b.ravel()
+    keep = (a ** 2 + b ** 2 <= reach_m ** 2 + 1e-9) & ((a != 0) | (b != 0))
+    return np.outer(a[keep], e1) + np.outer(b[keep], e2)
+
+
+def _horizontal(v: np.ndarray, up: np.ndarray) -> np.ndarray:
+    return v - np.outer(v @ up, up) if v.ndim == 2 else v - (v @ up) * up
+
+
+def gravity_hypotheses(scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: MapGraph, *, R_level: np.ndarray,
+                       up: np.ndarray, camera_height_m: float | None, yaw_step_deg: float = 10.0,
+                       pair_tolerance_m: float = 0.4, min_pair_horizontal_m: float = 0.3,
+                       offset_step_m: float = 0.0, max_offset_m: float = 0.5,
+                       scan_top: np.ndarray | None = None) -> Hypotheses:
+    """4-DoF hypotheses (yaw about `up` + translation) from single objects and object pairs.
+
+    scan_centroid : (n, 3) colour-camera frame; scan_cls : (n,) int. R_level : (3, 3) rotation taking the camera's
+    up onto the map's `up` (the unknown yaw is about `up`). camera_height_m : the camera's height above the map
+    floor along `up` when a floor is seen (map floor height already added), else None (height from centroids).
+    offset_step_m > 0: single-object hypotheses also try horizontal offsets of the centroid on a grid of this
+    step, up to half the node's largest extent (at most max_offset_m): a partly seen large object (a 2 m
+    whiteboard) has its visible centroid far from the node's.
+    scan_top : (n,) highest point of each scan object along up (levelled camera frame). Without a floor, the
+    camera height comes from the centroids, and again from the object tops (a view from above sees the top
+    of a chair but only part of its legs: its visible centroid sits high, its top does not move).
+    """
+    c = scan_centroid @ R_level.T
+    parts: list[Hypotheses] = []
+    # Single objects: the object's centroid fixes the translation for each yaw of a sweep.
+    yaws = np.radians(np.arange(0.0, 360.0, yaw_step_deg))
+    Ryaw = yaw_rotations(up, yaws)
+    for i in range(len(c)):
+        nodes = np.flatnonzero(graph.cls == scan_cls[i])
+        if len(nodes) == 0:
+            continue
+        Rc = Ryaw @ c[i]  # (y, 3)
+        t = graph.centroid[nodes][:, None, :] - Rc[None, :, :]  # (k, y, 3)
+        R = np.broadcast_to(Ryaw[None], (len(nodes), len(yaws), 3, 3))
+        seed = np.stack(np.broadcast_arrays(np.full((len(nodes), len(yaws)), i), nodes[:, None]), axis=-1)
+        parts.append(Hypotheses(R.reshape(-1, 3, 3) @ R_level, t.reshape(-1, 3), seed.reshape(-1, 2)))
+        if offset_step_m > 0:
+            for k in nodes:
+                reach = min(max_offset_m, 0.5 * float(np.max(graph.extent[k][:2])) if len(graph.extent) else 0.0)
+                offsets = _horizontal_grid(up, reach, offset_step_m)
+                if len(offsets) == 0:
+                    continue
+                tk = (graph.centroid[k] - Rc)[:, None, :] + offsets[None, :, :]  # (y, o, 3)
+                Rk = np.broadcast_to(Ryaw[:, None], (len(yaws), len(offsets), 3, 3)).reshape(-1, 3, 3)
+                parts.append(Hypotheses(Rk @ R_level, tk.reshape(-1, 3), np.tile([i, k], (len(Rk), 1))))
+    # Pairs: the horizontal direction between two objects fixes the yaw.
+    for i, j in permutations(range(len(c)), 2):
+        if i > j:
+            continue
+        ds = c[j] - c[i]
+        hs = _horizontal(ds, up)
+        if np.linalg.norm(hs) < min_pair_horizontal_m:
+            continue
+        a = np.flatnonzero(graph.cls == scan_cls[i])
+        b = np.flatnonzero(graph.cls == scan_cls[j])
+        if len(a) == 0 or len(b) == 0:
+            continue
+        A, B = np.meshgrid(a, b, indexing="ij")
+        A, B = A.ravel(), B.ravel()
+        keep = A != B
+        A, B = A[keep], B[keep]
+        dm = graph.centroid[B] - graph.centroid[A]
+        ok = np.abs(np.linalg.norm(dm, axis=1) - np.linalg.norm(ds)) < pair_tolerance_m
+        A, B, dm = A[ok], B[ok], dm[ok]
+        if len(A) == 0:
+            continue
+        hm = _horizontal(dm, up)
+        yaw = np.arctan2(np.cross(hs, hm) @ up, hm @ hs)
+        R = yaw_rotations(up, yaw)
+        t = 0.5 * ((graph.centroid[A] - R @ c[i]) + (graph.centroid[B] - R @ c[j]))
+        seed = np.stack([np.full(len(A), i), A], axis=1)
+        parts.append(Hypotheses(R @ R_level, t, seed))
+    hyp = Hypotheses.concat(parts)
+    if not len(hyp):
+        return hyp
+    if camera_height_m is not None:
+        # The camera centre is t: put it at the height the floor says, keep its horizontal position.
+        hyp.t = hyp.t - np.outer(hyp.t @ up, up) + camera_height_m * up
+    elif scan_top is not None and len(graph.top):
+        by_top = Hypotheses(hyp.R.copy(), hyp.t.copy(), hyp.seed.copy())
+        h_top = graph.top[hyp.seed[:, 1]] - scan_top[hyp.seed[:, 0]]
+        by_top.t = by_top.t - np.outer(by_top.t @ up, up) + np.outer(h_top, up)
+        hyp = Hypotheses.concat([hyp, by_top])
+    return hyp
+
+
+def kabsch_hypotheses(scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: MapGraph, *,
+                      pair_tolerance_m: float = 0.4, max_hypotheses: int = 5000) -> Hypotheses:
+    """6-DoF hypotheses from triples of scan objects matched to triples of map nodes (eq. 9), no gravity needed."""
+    Rs, ts, seeds = [], [], []
+    D = np.linalg.norm(graph.centroid[:, None] - graph.centroid[None], axis=-1)
+    for tri in combinations(range(len(scan_centroid)), 3):
+        P = scan_centroid[list(tri)]
+        dP = np.linalg.norm(P[:, None] - P[None], axis=-1)
+        cands = [np.flatnonzero(graph.cls == scan_cls[k]) for k in tri]
+        for a in cands[0]:
+            for b in cands[1]:
+                if b == a or abs(D[a, b] - dP[0, 1]) > pair_tolerance_m:
+                    continue
+                for c in cands[2]:
+                    if c in (a, b) or abs(D[a, c] - dP[0, 2]) > pair_tolerance_m or abs(D[b, c] - dP[1, 2]) > pair_tolerance_m:
+                        continue
+                    T = kabsch(P, graph.centroid[[a, b, c]])
+                    Rs.append(T[:3, :3]); ts.append(T[:3, 3]); seeds.append((tri[0], a))
+                    if len(Rs) >= max_hypotheses:
+                        break
+    if not Rs:
+        return Hypotheses.empty()
+    return Hypotheses(np.array(Rs), np.array(ts), np.array(seeds, dtype=np.int64))
+
+
+def score_graph(hyp: Hypotheses, scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: MapGraph, *,
+                match_radius_m: float = 0.6, edge_max_m: float = 1.5, alpha: float = 0.5, beta: float = 0.5) -> None:
+    """Fill hyp.s_v, s_e, sim and assignment (paper eq. 6–8, directions compared under each hypothesis).
+
+    S_V: fraction of scan objects that land within `match_radius_m` of a map node of their class.
+    S_E: over scan edges (centroids ≤ δ = edge_max_m apart), mean of (1 + cos)/2 between the scan edge direction
+    rotated into the map and the direction between the two assigned map nodes (0 when either end is unassigned).
+    assignment : (h, n) map node index per scan object, -1 when none.
+    """
+    h, n = len(hyp), len(scan_centroid)
+    if h == 0 or n == 0:
+        hyp.s_v = hyp.s_e = hyp.sim = np.zeros(h)
+        hyp.assignment = np.full((h, n), -1, dtype=np.int64)
+        return
+    c_map = np.einsum("hij,nj->hni", hyp.R, scan_centroid) + hyp.t[:, None, :]
+    d = np.linalg.norm(c_map[:, :, None, :] - graph.centroid[None, None], axis=-1)  # (h, n, k)
+    same = scan_cls[:, None] == graph.cls[None, :]
+    d = np.where(same[None], d, np.inf)
+    best = np.argmin(d, axis=2) if graph.centroid.size else np.zeros((h, n), dtype=np.int64)
+    best_d = np.take_along_axis(d, best[..., None], axis=2)[..., 0] if graph.centroid.size else np.full((h, n), np.inf)
+    assign = np.where(best_d < match_radius_m, best, -1)
+    s_v = (assign >= 0).mean(axis=1)
+    pairs = [(i, j) for i, j in combinations(range(n), 2)
+             if np.linalg.norm(scan_centroid[i] - scan_centroid[j]) <= edge_max_m]
+    if pairs:
+        I, J = np.array(pairs).T
+        dir_scan = scan_centroid[J] - scan_centroid[I]
+        dir_scan /= np.linalg.norm(dir_scan, axis=1, keepdims=True) + 1e-12
+        dir_scan_map = np.einsum("hij,ej->hei", hyp.R, dir_scan)
+        a, b = assign[:, I], assign[:, J]
+        both = (a >= 0) & (b >= 0) & (a != b)
+        dm = graph.centroid[np.maximum(b, 0)] - graph.centroid[np.maximum(a, 0)]
+        dm /= np.linalg.norm(dm, axis=-1, keepdims=True) + 1e-12
+        cos = np.einsum("hei,hei->he", dir_scan_map, dm)
+        s_e = np.where(both, (1.0 + cos) / 2.0, 0.0).mean(axis=1)
+        sim = (alpha * s_v + beta * s_e) / max(alpha + beta, 1e-12)
+    else:
+        s_e = np.zeros(h)
+        sim = s_v.copy()
+    hyp.s_v, hyp.s_e, hyp.sim, hyp.assignment = s_v, s_e, sim, assign
+
+
+def distinct_best(R: np.ndarray, t: np.ndarray, order: np.ndarray, *, count: int, min_translation_m: float = 0.25,
+                  min_rotation_deg: float = 15.0) -> list[int]:
+    """Greedy non-maximum suppression: up to `count` indices from `order` (best first), pairwise distinct poses."""
+    kept: list[int] = []
+    for i in order:
+        if all(np.linalg.norm(t[i] - t[k]) > min_translation_m or
+               rotation_angle_deg(R[i].T @ R[k]) > min_rotation_deg for k in kept):
+            kept.append(int(i))
+            if len(kept) >= count:
+                break
+    return kept

@@ -1,0 +1,238 @@
+"""Build a site from a scan (+ labels, + Scan2CAD alignments and a CAD library), or from labelled points.
+
+    build_site(scan_ply, labels_ply=..., scan2cad_json=..., cad_root=..., site_id=...) -> Site
+    site_from_labelled_points(points, colors, normals, labels, site_id=..., inputs=...) -> Site  (no CAD)
+
+Steps: read -> voxel down-sample the raw scan -> enhance with CADs (paper §2.2) -> cluster the labelled points no
+CAD covers into object nodes -> semantic graph (paper §2.3.2) -> Site (call `site.save(dir)` to write the bundle).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import __version__
+from ..config import SiteBuildConfig
+from ..io.bundle_files import sha256_file
+from ..io.cad import cad_model_path, load_cad_mesh
+from ..io.ply import read_scan
+from ..io.scan2cad import read_scan2cad, select_scan
+from ..labels import GRAPH_CLASSES, NYU40, STRUCTURE_CLASSES, default_label_maps, labels_to_class_index, synset_class
+from .bundle import Site
+from .enhance import SOURCE_RAW, CadPlacement, EnhancedMap, PointSet, enhance_map
+from .graph import ObjectNode, build_graph
+from .objects import aabb_center, classwise_clusters, merge_stacked, points_in_box, upright_box
+
+Progress = Callable[[int, int], None]
+
+
+def _stage(progress: Progress | None, base: int, span: int, total: int) -> Progress | None:
+    """Map a stage's own (done, of) onto the build's overall 0..total scale."""
+    if progress is None:
+        return None
+    return lambda done, of: progress(base + int(span * done / max(of, 1)), total)
+
+
+def voxel_representatives(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Indices (sorted, int64) of one point per occupied voxel of size voxel_m (the first one in input order).
+
+    A representative, not a mean, so colour, normal and label stay those of a real scan point.
+    """
+    if voxel_m <= 0 or len(points) == 0:
+        return np.arange(len(points))
+    keys = np.floor(np.asarray(points, np.float64) / voxel_m).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return np.sort(first)
+
+
+def estimate_normals(points: np.ndarray, radius_m: float = 0.1, max_nn: int = 30) -> np.ndarray:
+    """(n, 3) float32 unit normals by Open3D's local PCA, oriented towards the scan's centroid (inside a room)."""
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius_m, max_nn=max_nn))
+    pcd.orient_normals_towards_camera_location(np.asarray(points, np.float64).mean(axis=0))
+    return np.asarray(pcd.normals, dtype=np.float32)
+
+
+def _structure_mask(labels: np.ndarray | None, label_set: str, n: int) -> np.ndarray:
+    if labels is None or label_set != "nyu40":
+        return np.zeros(n, dtype=bool)
+    ids = np.array([i for i, name in NYU40.items() if name in STRUCTURE_CLASSES and name != "unlabeled"])
+    return np.isin(labels, ids)
+
+
+def _remnant_of(pts: np.ndarray, cls: str, cad_nodes: list[ObjectNode], margin_m: float) -> ObjectNode | None:
+    """The CAD node of the same class whose box, grown by margin_m, holds most of these points, if any."""
+    for node in cad_nodes:
+        if node.cls == cls and points_in_box(pts, node.box_center, node.box_extent, node.box_R, margin_m).mean() > 0.5:
+            return node
+    return None
+
+
+def _cluster_nodes(
+    enhanced: PointSet, classes: list[str], cad_nodes: list[ObjectNode], config: SiteBuildConfig,
+    progress: Progress | None,
+) -> list[ObjectNode]:
+    """Nodes from class-wise clustering of the labelled raw points no CAD replaced; sets their instance ids.
+
+    Clusters that are leftovers of a CAD object (same class, next to its box) join that CAD's instance instead.
+    """
+    free = np.flatnonzero((enhanced.source == SOURCE_RAW) & (enhanced.instance < 0) & (enhanced.class_index >= 0))
+    clusters = classwise_clusters(enhanced.points[free], enhanced.class_index[free],
+                                  config.graph.cluster_tolerance_m, config.graph.min_cluster_points, progress)
+    if config.graph.stacked_merge_overlap > 0:
+        clusters = merge_stacked(enhanced.points[free], clusters, config.graph.stacked_merge_overlap)
+    nodes: list[ObjectNode] = []
+    for cl in clusters:
+        idx = free[cl.indices]
+        pts = enhanced.points[idx]
+        owner = _remnant_of(pts, classes[cl.class_index], cad_nodes, config.graph.remnant_margin_m)
+        if owner is not None:
+            enhanced.instance[idx] = int(owner.id.split("-")[1])
+            continue
+        j = len(nodes)
+        enhanced.instance[idx] = len(cad_nodes) + j
+        center, extent, R = upright_box(pts)
+        nodes.append(ObjectNode(
+            id=f"cluster-{j}", cls=classes[cl.class_index], centroid=aabb_center(pts), box_center=center,
+            box_extent=extent, box_R=R, source="cluster", cad_id=None, points=len(idx),
+        ))
+    return nodes
+
+
+def _assemble(
+    raw: PointSet, structure: np.ndarray, placements: list[CadPlacement], *, site_id: str, inputs: dict[str, Any],
+    label_set: str, config: SiteBuildConfig, progress: Progress | None, total: int, base: int,
+) -> Site:
+    classes = list(GRAPH_CLASSES)
+    enhanced: EnhancedMap = enhance_map(raw, structure, placements, classes, config.enhance,
+                                        _stage(progress, base, 5, total))
+    m = enhanced.map
+    cluster_nodes = _cluster_nodes(m, classes, enhanced.cad_nodes, config, _stage(progress, base + 5, 2, total))
+    graph = build_graph(enhanced.cad_nodes + cluster_nodes, config.graph.edge_max_m)
+    if progress is not None:
+        progress(total, total)
+    meta = {
+        "site_id": site_id,
+        "built_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "cadreg_version": __version__,
+        "inputs": inputs,
+        "label_set": label_set,
+        "build_config": config.model_dump(mode="json"),
+        "enhance": {"cad_models": len(placements), "raw_points_replaced": enhanced.removed_raw},
+    }
+    site = Site(
+        site_id=site_id, version="", meta=meta,
+        points=m.points, colors=m.colors, normals=m.normals, instance=m.instance, class_index=m.class_index,
+        source=m.source,
+        raw_points=raw.points, raw_colors=raw.colors, raw_normals=raw.normals, raw_class_index=raw.class_index,
+        graph=graph, classes=classes, label_maps=default_label_maps(),
+    )
+    site.refresh_version()
+    return site
+
+
+def _raw_pointset(points, colors, normals, labels, label_set: str, voxel_m: float) -> tuple[PointSet, np.ndarray]:
+    keep = voxel_representatives(points, voxel_m)
+    pts = np.asarray(points, np.float32)[keep]
+    cols = np.asarray(colors, np.uint8)[keep]
+    nrm = estimate_normals(pts) if normals is None else np.asarray(normals, np.float32)[keep]
+    lab = None if labels is None else np.asarray(labels)[keep]
+    maps = default_label_maps()
+    if lab is not None and label_set not in maps:
+        raise KeyError(f"unknown label set {label_set!r} (known: {sorted(maps)})")
+    cls_idx = (np.full(len(pts), -1, np.int16) if lab is None
+               else labels_to_class_index(lab, maps[label_set], GRAPH_CLASSES))
+    n = len(pts)
+    raw = PointSet(pts, cols, nrm, np.full(n, -1, np.int32), cls_idx, np.full(n, SOURCE_RAW, np.uint8))
+    return raw, _structure_mask(lab, label_set, n)
+
+
+def site_from_labelled_points(
+    points: np.ndarray,
+    colors: np.ndarray,
+    normals: np.ndarray | None,
+    labels: np.ndarray | None,
+    *,
+    label_set: str = "nyu40",
+    site_id: str,
+    inputs: dict[str, Any],
+    config: SiteBuildConfig = SiteBuildConfig(),
+    progress: Progress | None = None,
+) -> Site:
+    """A site from labelled points alone (e.g. a TSDF-fused map): no CAD, every node from clustering.
+
+    points (N, 3) float, map frame, metres; colors (N, 3) uint8 RGB; normals (N, 3) float or None (estimated);
+    labels (N,) int ids in `label_set` or None (no object nodes); inputs: JSON-able description of the sources.
+    """
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
+        raise ValueError(f"points must be (N, 3) with N > 0, got {points.shape}")
+    if np.asarray(colors).shape != points.shape:
+        raise ValueError(f"colors must be {points.shape}, got {np.asarray(colors).shape}")
+    if labels is not None and np.asarray(labels).shape != (len(points),):
+        raise ValueError(f"labels must be ({len(points)},), got {np.asarray(labels).shape}")
+    total = 10
+    raw, structure = _raw_pointset(points, colors, normals, labels, label_set, config.enhance.raw_voxel_m)
+    if progress is not None:
+        progress(3, total)
+    return _assemble(raw, structure, [], site_id=site_id, inputs=inputs, label_set=label_set, config=config,
+                     progress=progress, total=total, base=3)
+
+
+def build_site(
+    scan_ply: str | Path,
+    *,
+    labels_ply: str | Path | None = None,
+    scan2cad_json: str | Path | None = None,
+    cad_root: str | Path | None = None,
+    site_id: str | None = None,
+    config: SiteBuildConfig = SiteBuildConfig(),
+    progress: Progress | None = None,
+) -> Site:
+    """Build a site from a scan PLY (colours required; NYU40 labels from `labels_ply` or the scan's own `label`),
+    optionally enhanced with the Scan2CAD record of this scan (the one whose id_scan the file name starts with, or
+    the only one) and CAD models from `cad_root`. Raises InvalidFileError naming any bad or missing input file.
+    """
+    scan_ply = Path(scan_ply)
+    if scan2cad_json is not None and cad_root is None:
+        raise ValueError("scan2cad_json needs cad_root (the CAD library)")
+    total = 12
+    scan = read_scan(scan_ply, labels_ply)
+    inputs: dict[str, Any] = {"scan": {"path": str(scan_ply), "sha256": sha256_file(scan_ply)}}
+    if labels_ply is not None:
+        inputs["labels"] = {"path": str(labels_ply), "sha256": sha256_file(labels_ply)}
+    if progress is not None:
+        progress(1, total)
+    placements: list[CadPlacement] = []
+    if scan2cad_json is not None:
+        record = select_scan(read_scan2cad(scan2cad_json), scan_ply.name, scan2cad_json)
+        inputs["scan2cad"] = {"path": str(scan2cad_json), "sha256": sha256_file(scan2cad_json),
+                              "id_scan": record.id_scan}
+        cad_files: dict[str, str] = {}
+        for model in record.aligned_models:
+            path = cad_model_path(cad_root, model.catid_cad, model.id_cad)
+            key = f"{model.catid_cad}/{model.id_cad}"
+            if key not in cad_files:
+                cad_files[key] = sha256_file(path)
+            placements.append(CadPlacement(load_cad_mesh(path), record.A_scan_cad(model),
+                                           synset_class(model.catid_cad), key))
+        inputs["cad_root"] = str(cad_root)
+        inputs["cad_models"] = cad_files
+    if progress is not None:
+        progress(3, total)
+    has_labels = scan.labels is not None
+    raw, structure = _raw_pointset(scan.points, scan.colors, scan.normals, scan.labels, "nyu40",
+                                   config.enhance.raw_voxel_m)
+    if progress is not None:
+        progress(5, total)
+    site = _assemble(raw, structure, placements, site_id=site_id or scan_ply.name.split(".")[0], inputs=inputs,
+                     label_set="nyu40" if has_labels else "none", config=config, progress=progress, total=total,
+                     base=5)
+    return site

@@ -1,0 +1,89 @@
+"""Pictures of a site (paper Fig. 5): a top view of the enhanced map coloured by class, with the semantic graph.
+
+`draw_site_top_view(ax, site)` draws onto any matplotlib Axes (the localize picture reuses it);
+`render_site_png(site)` returns PNG bytes (the runner writes them). Matplotlib's Agg backend: no display needed.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+
+from .bundle import Site
+
+_MAX_DRAWN_POINTS = 60000
+
+
+def class_colors(n: int) -> np.ndarray:
+    """(n, 3) float RGB in [0, 1], one distinct colour per class index (tab20, then hsv)."""
+    from matplotlib import colormaps
+
+    tab = colormaps["tab20"](np.arange(20))[:, :3]
+    if n <= 20:
+        return tab[:n]
+    return np.vstack([tab, colormaps["hsv"](np.linspace(0, 1, n - 20, endpoint=False))[:, :3]])
+
+
+def draw_site_top_view(ax, site: Site, *, max_points: int = _MAX_DRAWN_POINTS, seed: int = 0,
+                       draw_graph: bool = True, label_nodes: bool = True) -> None:
+    """Top view (x right, y up, map frame, metres) of `site` on `ax`.
+
+    Points without a class are grey, object points take their class colour (CAD points drawn on top); nodes are
+    markers (CAD: filled squares, cluster: hollow circles) labelled "<class>", edges are thin lines.
+    """
+    rng = np.random.default_rng(seed)
+    n = len(site.points)
+    idx = rng.choice(n, size=min(n, max_points), replace=False) if n > max_points else np.arange(n)
+    # draw low points first so that a table top covers the floor under it
+    idx = idx[np.argsort(site.points[idx, 2], kind="stable")]
+    p = site.points[idx]
+    c = site.class_index[idx]
+    palette = class_colors(len(site.classes))
+    plain = c < 0
+    ax.scatter(p[plain, 0], p[plain, 1], s=0.3, c=[(0.72, 0.72, 0.72)], linewidths=0, rasterized=True)
+    ax.scatter(p[~plain, 0], p[~plain, 1], s=0.6, c=palette[c[~plain]], linewidths=0, rasterized=True)
+    if draw_graph:
+        for a, b in site.graph.graph.edges():
+            pa, pb = site.graph.node(a).centroid, site.graph.node(b).centroid
+            ax.plot([pa[0], pb[0]], [pa[1], pb[1]], color="0.25", lw=0.6, alpha=0.7, zorder=3)
+        for node in site.graph.nodes:
+            k = site.classes.index(node.cls) if node.cls in site.classes else -1
+            col = palette[k] if k >= 0 else (0, 0, 0)
+            if node.source == "cad":
+                ax.scatter([node.centroid[0]], [node.centroid[1]], marker="s", s=60, c=[col], edgecolors="k",
+                           linewidths=1.2, zorder=4)
+            else:
+                ax.scatter([node.centroid[0]], [node.centroid[1]], marker="o", s=60, facecolors="none",
+                           edgecolors=[col], linewidths=2.0, zorder=4)
+            if label_nodes:
+                ax.annotate(node.cls, node.centroid[:2], xytext=(4, 4), textcoords="offset points", fontsize=7,
+                            zorder=5)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+
+
+def render_site_png(site: Site, *, dpi: int = 150) -> bytes:
+    """PNG bytes of the top view with a legend (CAD vs cluster nodes) and a title naming the site."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+
+    fig = Figure(figsize=(8, 7))
+    ax = fig.add_subplot(1, 1, 1)
+    draw_site_top_view(ax, site)
+    n_cad = sum(1 for n in site.graph.nodes if n.source == "cad")
+    ax.set_title(f"site {site.site_id} v{site.version}: {len(site.graph.nodes)} objects "
+                 f"({n_cad} CAD), {site.graph.graph.number_of_edges()} edges")
+    handles = [
+        Line2D([], [], marker="s", ls="", mfc="w", mec="k", label="CAD node"),
+        Line2D([], [], marker="o", ls="", mfc="none", mec="k", label="cluster node"),
+        Line2D([], [], marker=".", ls="", color="0.72", label="no class (wall, floor, ...)"),
+    ]
+    ax.legend(handles=handles, loc="upper left", fontsize=7, framealpha=0.8)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+    return buf.getvalue()

@@ -1,0 +1,380 @@
+"""zenoh client of the cadreg service: request/reply `localize` and a streaming helper for robots.
+
+    with ZenohClient("tcp/127.0.0.1:7447") as z:
+        result = z.localize("scene0470", frame)          # query on cadreg/<site>/localize
+
+        with z.stream("scene0470", "robot-1", lost_after_s=5.0) as s:   # DESIGN §6 stream mode
+            for r in s.run(frames, rate_hz=5):             # publishes frames, yields StreamResult as poses come back
+                if r.lost: ...                             # no pose for r.frame_id within lost_after_s
+                elif r.error: ...                          # the service answered with an error body
+                else: r.result["T_map_camera"]
+
+The session is a zenoh *client* connected to the given endpoint(s) (the service's `--zenoh-listen`), with
+multicast and gossip scouting off (DESIGN §9), so nothing leaves loopback unless asked. `localize` sends the
+`service.codec` envelope with `session.get(key, payload=..., timeout=...)`; an `ok` reply is the result JSON, an
+`err` reply the error body, raised as the typed class of `clients.errors`. Retries as over HTTP (`RetryPolicy`):
+`overloaded` / `worker_crashed` and "no queryable answered" (`unreachable`, e.g. the service is still starting) are
+retried; everything else, and the query timeout (`client_timeout`), is not.
+
+Callbacks never block and never call zenoh: subscriber samples go to a queue drained by the caller's thread.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Iterable, Iterator, Sequence
+
+import zenoh
+
+import service.codec as codec
+
+from .errors import BadResponse, ClientError, ClientTimeout, Unreachable, error_from_body
+from .frames import EncodedFrame, FolderCache, FrameLike, to_encoded
+from .retry import ClientPause, RetryHook, RetryPolicy
+
+DEFAULT_QUERY_TIMEOUT_S = 120.0
+_BAD_KEY_CHARS = set("*$#?/ ")
+
+
+def session_config(connect: Sequence[str] = (), listen: Sequence[str] = (), *, mode: str = "client") -> zenoh.Config:
+    """A zenoh Config with scouting off (no multicast, no gossip) and only the given endpoints."""
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", json.dumps(mode))
+    cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    cfg.insert_json5("scouting/gossip/enabled", "false")
+    return cfg
+
+
+def localize_key(site_id: str) -> str:
+    return f"cadreg/{_key_part(site_id, 'site id')}/localize"
+
+
+def frames_key(site_id: str, device_id: str) -> str:
+    return f"cadreg/{_key_part(site_id, 'site id')}/frames/{_key_part(device_id, 'device id')}"
+
+
+def poses_key(site_id: str, device_id: str) -> str:
+    return f"cadreg/{_key_part(site_id, 'site id')}/poses/{_key_part(device_id, 'device id')}"
+
+
+def _key_part(value: str, what: str) -> str:
+    if not value or _BAD_KEY_CHARS & set(value):
+        raise ValueError(f"{what} {value!r} cannot be part of a zenoh key (no empty, '*', '$', '#', '?', '/', ' ')")
+    return value
+
+
+def _decode_reply_payload(data: bytes, *, error: bool) -> dict[str, Any]:
+    try:
+        body = json.loads(data)
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise BadResponse(f"zenoh reply is not JSON: {data[:200]!r}") from None
+    if not isinstance(body, dict):
+        raise BadResponse(f"zenoh reply is not a JSON object: {data[:200]!r}")
+    if error:
+        raise error_from_body(body)
+    return body
+
+
+class ZenohClient:
+    """A zenoh session to the cadreg service.
+
+    connect : endpoint or endpoints of the service, e.g. "tcp/127.0.0.1:7447" (ignored when `session` is given).
+    timeout_s : query timeout of `localize` (a localization takes seconds on a busy machine).
+    session : an already open zenoh Session to use (not closed by `close`).
+    """
+
+    def __init__(
+        self,
+        connect: str | Sequence[str] = (),
+        *,
+        timeout_s: float = DEFAULT_QUERY_TIMEOUT_S,
+        retry: RetryPolicy | None = None,
+        on_retry: RetryHook | None = None,
+        top_k: int | None = None,
+        session: zenoh.Session | None = None,
+        deadline_s: float | None = None,
+    ) -> None:
+        endpoints = [connect] if isinstance(connect, str) else list(connect)
+        self.timeout_s = float(timeout_s)
+        self.retry = retry or RetryPolicy()
+        self.on_retry = on_retry
+        self.top_k = top_k
+        self.deadline_s = deadline_s
+        self.retries = 0
+        self._folders = FolderCache()
+        self._lock = threading.Lock()
+        self._pause = ClientPause(self.retry)
+        if session is not None:
+            self.session, self._owns = session, False
+        else:
+            if not endpoints:
+                raise ValueError("give the service's endpoint(s) to connect to, or an open session")
+            try:
+                self.session = zenoh.open(session_config(endpoints))
+            except zenoh.ZError as exc:
+                raise Unreachable(f"cannot open a zenoh session to {', '.join(endpoints)}: {exc}") from None
+            self._owns = True
+
+    def __enter__(self) -> "ZenohClient":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._owns and not self.session.is_closed():
+            self.session.close()
+
+    def _encode(self, frame: FrameLike, frame_id: str | None, top_k: int | None) -> EncodedFrame:
+        enc = to_encoded(frame, top_k=top_k if top_k is not None else self.top_k, cache=self._folders)
+        return enc if frame_id is None else enc.with_frame_id(frame_id)
+
+    def query_once(self, site_id: str, payload: bytes, timeout_s: float | None = None) -> dict[str, Any]:
+        """One query, no retries: the result dict, or the typed error."""
+        timeout_s = self.timeout_s if timeout_s is None else timeout_s
+        key = localize_key(site_id)
+        started = time.monotonic()
+        try:
+            replies = self.session.get(key, payload=payload, timeout=timeout_s)
+            for reply in replies:
+                if reply.ok is not None:
+                    return _decode_reply_payload(reply.ok.payload.to_bytes(), error=False)
+                data = reply.err.payload.to_bytes()
+                if data == b"Timeout" and time.monotonic() - started >= 0.9 * timeout_s:
+                    break  # zenoh's own reply when the query timed out
+                return _decode_reply_payload(data, error=True)
+        except zenoh.ZError as exc:
+            raise Unreachable(f"zenoh query on {key} failed: {exc}") from None
+        elapsed = time.monotonic() - started
+        # zenoh ends a query with no reply both when nobody serves the key (at once) and at the timeout
+        if elapsed >= 0.9 * timeout_s:
+            raise ClientTimeout(f"no answer on {key} within {timeout_s:g} s")
+        raise Unreachable(f"no queryable answered on {key} (is the service up and serving site {site_id!r}?)")
+
+    def localize(
+        self,
+        site_id: str,
+        frame: FrameLike,
+        *,
+        frame_id: str | None = None,
+        top_k: int | None = None,
+        timeout_s: float | None = None,
+    ) -> dict[str, Any]:
+        """Localize one frame (a cadreg Frame, an EncodedFrame, or (folder, index)); the result dict.
+
+        Safe to call from several threads at once (each call is its own zenoh query).
+        """
+        return self.localize_envelope(site_id, self._encode(frame, frame_id, top_k).envelope(), timeout_s=timeout_s)
+
+    def localize_envelope(self, site_id: str, payload: bytes, *, timeout_s: float | None = None) -> dict[str, Any]:
+        """`localize` for an already packed envelope (`EncodedFrame.envelope()`), with the retries."""
+        started = time.monotonic()
+        attempt = 0
+        pause = self._pause.wait_s(started)
+        if pause > 0:
+            time.sleep(pause)
+        while True:
+            try:
+                return self.query_once(site_id, payload, timeout_s)
+            except ClientError as error:
+                self._pause.note(error, time.monotonic())
+                delay = self.retry.delay_s(attempt, error)
+                if delay is not None and self.deadline_s is not None:
+                    if time.monotonic() - started + delay > self.deadline_s:
+                        delay = None
+                if delay is None:
+                    raise
+                with self._lock:
+                    self.retries += 1
+                if self.on_retry is not None:
+                    self.on_retry(attempt + 1, error, delay)
+                time.sleep(delay)
+                attempt += 1
+
+    def stream(
+        self, site_id: str, device_id: str, *, lost_after_s: float = 10.0, drop_when_congested: bool = False
+    ) -> "PoseStream":
+        """A PoseStream publishing frames of `device_id` to the site and collecting its poses (a context manager)."""
+        return PoseStream(self, site_id, device_id, lost_after_s=lost_after_s,
+                          drop_when_congested=drop_when_congested)
+
+
+@dataclass
+class StreamResult:
+    """What became of one published frame.
+
+    frame_id : the id the frame was published with (the service echoes it).
+    result : the result dict (status, T_map_camera, ...) when a pose message came back, else None.
+    error : the typed error when the service answered with an error body, else None.
+    lost : True when nothing came back within `lost_after_s` of publishing (a late answer is then dropped).
+    latency_ms : publish -> answer (or -> declared lost), milliseconds.
+    """
+
+    frame_id: str
+    result: dict[str, Any] | None = None
+    error: ClientError | None = None
+    lost: bool = False
+    latency_ms: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return self.result is not None
+
+
+class PoseStream:
+    """Stream mode for robots: publish frames on `cadreg/<site>/frames/<device>`, get poses on
+    `cadreg/<site>/poses/<device>`, matched by frame id.
+
+    Lost frames: a frame with no answer `lost_after_s` after it was published is yielded once as
+    `StreamResult(frame_id, lost=True)`; an answer arriving later is counted in `late` and not yielded.
+    Messages whose frame id was never published by this stream (another client on the same device key) are
+    counted in `foreign` and skipped.
+    """
+
+    def __init__(
+        self, client: ZenohClient, site_id: str, device_id: str, *, lost_after_s: float = 10.0,
+        drop_when_congested: bool = False,
+    ) -> None:
+        if lost_after_s <= 0:
+            raise ValueError("lost_after_s must be positive")
+        self.client = client
+        self.site_id, self.device_id = site_id, device_id
+        self.lost_after_s = float(lost_after_s)
+        self.late = 0
+        self.foreign = 0
+        self._pending: dict[str, float] = {}  # frame id -> monotonic publish time
+        self._resolved: set[str] = set()
+        self._inbox: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        self._ids = itertools.count()
+        session = client.session
+        # the callback only enqueues: it runs on a zenoh thread that must not block
+        self._sub = session.declare_subscriber(poses_key(site_id, device_id),
+                                               lambda sample: self._inbox.put(sample.payload.to_bytes()))
+        cc = zenoh.CongestionControl.DROP if drop_when_congested else zenoh.CongestionControl.BLOCK
+        self._pub = session.declare_publisher(frames_key(site_id, device_id), congestion_control=cc)
+
+    def __enter__(self) -> "PoseStream":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        for entity in (self._pub, self._sub):
+            try:
+                entity.undeclare()
+            except zenoh.ZError:
+                pass  # already gone with its session
+
+    @property
+    def pending(self) -> int:
+        return len(self._pending)
+
+    def wait_ready(self, timeout_s: float = 5.0) -> bool:
+        """Wait until the service's frame subscriber is known to us (frames published before are lost)."""
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            if self._pub.matching_status.matching:
+                return True
+            time.sleep(0.02)
+        return bool(self._pub.matching_status.matching)
+
+    def send(self, frame: FrameLike, *, frame_id: str | None = None) -> str:
+        """Publish a frame; returns its frame id (the given one, the frame's own, or `<device>-<n>`)."""
+        enc = self.client._encode(frame, None, None)  # noqa: SLF001 - same encoding rules as localize
+        fid = frame_id or enc.frame_id or f"{self.device_id}-{next(self._ids)}"
+        if fid in self._pending:
+            raise ValueError(f"frame id {fid!r} is already in flight")
+        self._resolved.discard(fid)
+        payload = enc.with_frame_id(fid).envelope()
+        self._pending[fid] = time.monotonic()
+        self._pub.put(payload)
+        return fid
+
+    def poll(self, timeout_s: float = 0.0) -> list[StreamResult]:
+        """Answers that arrived (waiting up to `timeout_s` for the first), then frames now lost."""
+        out: list[StreamResult] = []
+        try:
+            data = self._inbox.get(timeout=timeout_s) if timeout_s > 0 else self._inbox.get_nowait()
+            while True:
+                r = self._match(data)
+                if r is not None:
+                    out.append(r)
+                data = self._inbox.get_nowait()
+        except queue.Empty:
+            pass
+        now = time.monotonic()
+        for fid, sent in list(self._pending.items()):
+            if now - sent >= self.lost_after_s:
+                del self._pending[fid]
+                self._resolved.add(fid)
+                out.append(StreamResult(fid, lost=True, latency_ms=(now - sent) * 1e3))
+        return out
+
+    def _match(self, data: bytes) -> StreamResult | None:
+        try:
+            body = json.loads(data)
+        except (UnicodeDecodeError, json.JSONDecodeError):
+            body = None
+        if not isinstance(body, dict):
+            self.foreign += 1
+            return None
+        is_error = "code" in body and "status" not in body
+        detail = body.get("detail") if isinstance(body.get("detail"), dict) else {}
+        fid = body.get("frame_id", detail.get("frame_id"))
+        if fid not in self._pending:
+            if fid in self._resolved:
+                self.late += 1
+            else:
+                self.foreign += 1
+            return None
+        sent = self._pending.pop(fid)
+        self._resolved.add(fid)
+        latency_ms = (time.monotonic() - sent) * 1e3
+        if is_error:
+            return StreamResult(fid, error=error_from_body(body), latency_ms=latency_ms)
+        return StreamResult(fid, result=body, latency_ms=latency_ms)
+
+    def results(self, *, idle_timeout_s: float | None = None) -> Iterator[StreamResult]:
+        """Yield answers until no frame is pending (every frame answered or lost).
+
+        idle_timeout_s : stop early when nothing at all arrives for this long (None: rely on lost_after_s).
+        """
+        last = time.monotonic()
+        while self._pending:
+            got = self.poll(timeout_s=0.05)
+            if got:
+                last = time.monotonic()
+            yield from got
+            if idle_timeout_s is not None and time.monotonic() - last > idle_timeout_s:
+                return
+
+    def run(self, frames: Iterable[FrameLike], *, rate_hz: float | None = None,
+            max_in_flight: int = 8) -> Iterator[StreamResult]:
+        """Publish `frames` (at `rate_hz`, or as fast as answers allow with at most `max_in_flight` pending) and
+        yield one StreamResult per frame, in arrival order; returns when every frame is answered or lost."""
+        if rate_hz is not None and rate_hz <= 0:
+            raise ValueError("rate_hz must be positive")
+        period = None if rate_hz is None else 1.0 / rate_hz
+        next_at = time.monotonic()
+        for frame in frames:
+            while True:
+                now = time.monotonic()
+                if period is not None and now >= next_at:
+                    break
+                if period is None and len(self._pending) < max_in_flight:
+                    break
+                wait = 0.05 if period is None else min(0.05, max(0.0, next_at - now))
+                yield from self.poll(timeout_s=wait)
+            self.send(frame)
+            if period is not None:
+                next_at += period
+            yield from self.poll()
+        yield from self.results()

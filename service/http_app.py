@@ -1,0 +1,334 @@
+"""The HTTP front end (FastAPI): `create_app(settings)`.
+
+Routes (DESIGN §6):
+    POST /v1/sites/{site_id}/localize   multipart/form-data: color, depth, labels (optional), meta (FrameMeta JSON)
+    GET  /v1/sites                      [{site_id, version}]
+    GET  /v1/sites/{site_id}            {site_id, version, nodes, edges, points, classes}
+    PUT  /v1/sites/{site_id}            admin (Bearer token): upload a bundle as a tar/zip archive, swapped in live
+    POST /v1/sites/{site_id}/reload     admin: reload the bundle from the sites directory, swapped in live
+    GET  /healthz, /readyz, /metrics    liveness, readiness (sites loaded, pool up), Prometheus
+Every error is `{code, message, request_id, detail}` with the status of `service.errors.ERROR_TABLE`. Request ids
+come from `X-Request-ID` (when sane) or are made here; they go back in the header, the body and the log line.
+Bodies are size-checked before anything is decoded (Content-Length, then bytes counted while reading). The event
+loop never decodes images: parts go to the worker pool as bytes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import logging
+import re
+import time
+import uuid
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any, AsyncIterator
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, Response
+from starlette.datastructures import UploadFile
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.formparsers import MultiPartException, MultiPartParser
+
+from cadreg import __version__
+from cadreg.errors import CadregError, InputError, InvalidFrame, PayloadTooLarge
+
+from .codec import PART_NAMES, encode_result
+from .errors import Unauthorized, error_body, http_headers, spec_for
+from .runtime import Service
+from .schemas import ErrorBody, Health, LocalizeResponse, Readiness, SiteInfo, SiteList, SiteSummary
+from .settings import Settings
+
+log = logging.getLogger("cadreg.service.http")
+
+_REQUEST_ID = re.compile(r"^[A-Za-z0-9._:-]{1,128}$")
+_DRAIN_FACTOR = 4  # read (and drop) up to this many times the limit, so the client sees the 413 and not a reset
+
+
+def _error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
+    return {code: {"model": ErrorBody, "description": "error body"} for code in codes}
+
+
+_LOCALIZE_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["color", "depth", "meta"],
+                    "properties": {
+                        "color": {"type": "string", "format": "binary", "description": "PNG or JPEG, 8-bit RGB"},
+                        "depth": {"type": "string", "format": "binary",
+                                  "description": "PNG, 16-bit grayscale, depth_scale units per metre, 0 = invalid"},
+                        "labels": {"type": "string", "format": "binary",
+                                   "description": "optional PNG, 8- or 16-bit label ids, colour's size"},
+                        "meta": {"type": "string", "description": "JSON text of FrameMeta (schema FrameMeta)"},
+                    },
+                }
+            }
+        },
+    }
+}
+
+
+class _JSON(JSONResponse):
+    """JSON through the wire codec: compact, NaN-free."""
+
+    def render(self, content: Any) -> bytes:
+        return encode_result(content)
+
+
+def _error_response(exc: BaseException, request: Request) -> Response:
+    request_id = getattr(request.state, "request_id", None)
+    body = error_body(exc, request_id)
+    request.state.error_code = body["code"]
+    return _JSON(body, status_code=spec_for(exc).status, headers=http_headers(exc, request_id))
+
+
+async def _read_body(request: Request, limit: int) -> bytes:
+    """The request body, refusing (413) anything over `limit` bytes before it is decoded."""
+    declared = request.headers.get("content-length")
+    too_large: int | None = None
+    if declared is not None:
+        try:
+            n = int(declared)
+        except ValueError:
+            raise InvalidFrame("Content-Length is not a number") from None
+        if n > limit:
+            too_large = n
+    chunks: list[bytes] = []
+    total = 0
+    async for chunk in request.stream():
+        total += len(chunk)
+        if too_large is None and total > limit:
+            too_large = total
+        if too_large is not None:
+            chunks.clear()
+            if total > _DRAIN_FACTOR * limit:
+                break
+            continue
+        chunks.append(chunk)
+    if too_large is not None:
+        raise PayloadTooLarge(f"request body of {too_large}+ bytes is over the {limit}-byte limit",
+                              detail={"limit_bytes": limit})
+    return b"".join(chunks)
+
+
+async def _parse_multipart(request: Request, body: bytes) -> tuple[dict[str, bytes], str]:
+    content_type = request.headers.get("content-type", "")
+    if not content_type.startswith("multipart/form-data"):
+        raise InvalidFrame(f"expected multipart/form-data, got {content_type or 'no content type'!r}")
+
+    async def once() -> AsyncIterator[bytes]:
+        yield body
+
+    parser = MultiPartParser(request.headers, once(), max_files=len(PART_NAMES) + 1, max_fields=2,
+                             max_part_size=1024 * 1024)
+    try:
+        form = await parser.parse()
+    except MultiPartException as exc:
+        raise InvalidFrame(f"malformed multipart body: {exc.message}") from None
+    parts: dict[str, bytes] = {}
+    meta: str | None = None
+    try:
+        for name, value in form.multi_items():
+            if name == "meta":
+                meta = (await value.read()).decode("utf-8") if isinstance(value, UploadFile) else value
+            elif name in PART_NAMES:
+                if not isinstance(value, UploadFile):
+                    raise InvalidFrame(f"part {name!r} must be a file part (binary), not a text field")
+                if name in parts:
+                    raise InvalidFrame(f"part {name!r} given twice")
+                parts[name] = await value.read()
+            else:
+                raise InvalidFrame(f"unknown part {name!r} (expected {', '.join(PART_NAMES)}, meta)")
+    except UnicodeDecodeError:
+        raise InvalidFrame("meta is not UTF-8 text") from None
+    finally:
+        await form.close()
+    if meta is None:
+        raise InvalidFrame("missing part: meta", detail={"part": "meta"})
+    return parts, meta
+
+
+def create_app(settings: Settings, service: Service | None = None, zenoh_server: Any = None) -> FastAPI:
+    """The HTTP app. Its lifespan starts the service (registry, worker pool) and the zenoh front end unless the
+    caller started them already (`cadreg serve` does, to fail with a clear message), and stops both at shutdown."""
+    service = service or Service(settings)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        nonlocal zenoh_server
+        try:
+            if not service.started.is_set():
+                await asyncio.to_thread(service.start)
+            if settings.zenoh_enabled and zenoh_server is None:
+                from .zenoh_server import ZenohServer
+
+                zenoh_server = ZenohServer(service, settings)
+                await asyncio.to_thread(zenoh_server.start)
+            app.state.zenoh = zenoh_server
+            yield
+        finally:
+            if zenoh_server is not None:
+                await asyncio.to_thread(zenoh_server.stop)
+            await asyncio.to_thread(service.stop)
+
+    app = FastAPI(
+        title="cadreg",
+        version=__version__,
+        description="Localize an RGB-D frame inside a pre-built site map (CAD-aided coarse-to-fine registration).",
+        lifespan=lifespan,
+    )
+    app.state.service = service
+    app.state.zenoh = None
+
+    @app.middleware("http")
+    async def request_context(request: Request, call_next):
+        given = request.headers.get("x-request-id", "")
+        request_id = given if _REQUEST_ID.match(given) else uuid.uuid4().hex
+        request.state.request_id = request_id
+        request.state.error_code = None
+        t0 = time.perf_counter()
+        try:
+            response = await call_next(request)
+        except Exception as exc:  # anything not handled below: one 500 body, no traceback to the client
+            log.exception("request %s failed", request_id)
+            response = _error_response(exc, request)
+        response.headers["X-Request-ID"] = request_id
+        elapsed = time.perf_counter() - t0
+        route = request.scope.get("route")
+        template = getattr(route, "path", "unmatched")
+        code = request.state.error_code or ("ok" if response.status_code < 400 else str(response.status_code))
+        service.metrics.observe_request("http", template, code, elapsed)
+        if settings.log_requests and template not in ("/metrics", "/healthz", "/readyz"):
+            site = request.path_params.get("site_id", "-") if route is not None else "-"
+            log.info("request_id=%s %s %s site=%s status=%d code=%s ms=%.1f", request_id, request.method,
+                     request.url.path, site, response.status_code, code, elapsed * 1e3)
+        return response
+
+    @app.exception_handler(CadregError)
+    async def cadreg_error(request: Request, exc: CadregError) -> Response:
+        return _error_response(exc, request)
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(request: Request, exc: RequestValidationError) -> Response:
+        errors = [{"loc": [str(p) for p in e.get("loc", ())], "msg": str(e.get("msg"))} for e in exc.errors()]
+        return _error_response(InputError("invalid request", detail={"errors": errors}), request)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
+        code = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error")
+        request.state.error_code = code
+        body = {"code": code, "message": str(exc.detail), "request_id": request.state.request_id, "detail": {}}
+        return _JSON(body, status_code=exc.status_code, headers=dict(exc.headers or {}))
+
+    def require_admin(request: Request) -> None:
+        token = settings.admin_token.get_secret_value() if settings.admin_token is not None else None
+        if not token:
+            raise Unauthorized("admin routes are disabled: set CADREG_ADMIN_TOKEN")
+        scheme, _, given = request.headers.get("authorization", "").partition(" ")
+        if scheme.lower() != "bearer" or not hmac.compare_digest(given.strip().encode(), token.encode()):
+            raise Unauthorized("missing or wrong bearer token")
+
+    # --- localize -----------------------------------------------------------------------------------------------
+
+    @app.post(
+        "/v1/sites/{site_id}/localize",
+        response_model=LocalizeResponse,
+        summary="Localize one RGB-D frame in a site",
+        openapi_extra=_LOCALIZE_BODY,
+        responses=_error_responses(404, 413, 422, 500, 503, 504),
+    )
+    async def localize(site_id: str, request: Request) -> Response:
+        service.registry.get(site_id)  # 404 before reading a body for nothing
+        body = await _read_body(request, settings.max_upload_bytes)
+        parts, meta = await _parse_multipart(request, body)
+        future = service.submit(site_id, parts, meta)
+        job = await asyncio.wrap_future(future)
+        return _JSON(service.finish(job, site_id, request.state.request_id))
+
+    # --- sites --------------------------------------------------------------------------------------------------
+
+    @app.get("/v1/sites", response_model=SiteList, summary="Sites served and their bundle versions")
+    async def list_sites() -> dict[str, Any]:
+        return {"sites": [e.summary() for e in service.registry.entries()]}
+
+    @app.get("/v1/sites/{site_id}", response_model=SiteInfo, responses=_error_responses(404),
+             summary="One site: version, graph and map sizes, classes")
+    async def site_info(site_id: str) -> dict[str, Any]:
+        return service.registry.get(site_id).info()
+
+    @app.put("/v1/sites/{site_id}", response_model=SiteSummary, responses=_error_responses(401, 413, 422, 503),
+             summary="Admin: upload a site bundle (tar or zip archive) and swap it in",
+             openapi_extra={"requestBody": {"required": True, "content": {
+                 "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}}})
+    async def upload_site(site_id: str, request: Request) -> dict[str, Any]:
+        require_admin(request)
+        if not re.match(r"^[A-Za-z0-9._-]{1,128}$", site_id) or site_id.startswith("."):
+            raise InputError(f"site id {site_id!r} must be letters, digits, '.', '_' or '-'")
+        incoming = service.registry.root / ".incoming"
+        await asyncio.to_thread(incoming.mkdir, parents=True, exist_ok=True)
+        archive = incoming / f"upload-{uuid.uuid4().hex}"
+        try:
+            await _stream_to_file(request, archive, settings.max_bundle_bytes)
+            entry = await asyncio.to_thread(service.install_archive, site_id, archive)
+        finally:
+            await asyncio.to_thread(archive.unlink, missing_ok=True)
+        return entry.summary()
+
+    @app.post("/v1/sites/{site_id}/reload", response_model=SiteSummary, responses=_error_responses(401, 404, 422, 503),
+              summary="Admin: reload a site from the sites directory and swap it in")
+    async def reload_site(site_id: str, request: Request) -> dict[str, Any]:
+        require_admin(request)
+        if "/" in site_id or site_id.startswith("."):
+            raise InputError(f"bad site id {site_id!r}")
+        entry = await asyncio.to_thread(service.reload_site, site_id)
+        return entry.summary()
+
+    # --- operations ---------------------------------------------------------------------------------------------
+
+    @app.get("/healthz", response_model=Health, summary="Liveness")
+    async def healthz() -> dict[str, str]:
+        return {"status": "ok"}
+
+    @app.get("/readyz", response_model=Readiness, responses={503: {"model": Readiness}},
+             summary="Ready when every site is loaded by the workers")
+    async def readyz() -> Response:
+        pool = service.pool
+        body = {
+            "ready": service.ready,
+            "sites": [e.summary() for e in service.registry.entries()],
+            "workers_alive": pool.alive() if pool else 0,
+            "workers": settings.workers,
+        }
+        return _JSON(body, status_code=200 if body["ready"] else 503)
+
+    @app.get("/metrics", summary="Prometheus metrics", response_class=Response)
+    async def metrics() -> Response:
+        return Response(service.metrics.render(), media_type="text/plain; version=0.0.4; charset=utf-8")
+
+    if settings.test_hooks:
+        @app.get("/debug/workers", include_in_schema=False)
+        async def debug_workers() -> list[dict[str, Any]]:
+            return service.pool.workers_info() if service.pool else []
+
+    return app
+
+
+async def _stream_to_file(request: Request, path: Path, limit: int) -> None:
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > limit:
+        raise PayloadTooLarge(f"archive of {declared} bytes is over the {limit}-byte limit", detail={"limit_bytes": limit})
+    total = 0
+    with open(path, "wb") as out:
+        async for chunk in request.stream():
+            total += len(chunk)
+            if total > limit:
+                raise PayloadTooLarge(f"archive over the {limit}-byte limit", detail={"limit_bytes": limit})
+            await asyncio.to_thread(out.write, chunk)
+    if total == 0:
+        raise InputError("empty upload: send the bundle archive as the request body")

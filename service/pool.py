@@ -1,0 +1,491 @@
+"""A pool of worker processes with a bounded queue, per-request deadlines and crash recovery.
+
+Why not ProcessPoolExecutor: one dead worker breaks every pending future there. Here each worker is a process of
+our own with one pipe; one dispatcher thread waits on every pipe, every `process.sentinel` and a wake-up pipe, so:
+- a full queue refuses at once (`Overloaded`, 503 + Retry-After), never unbounded latency;
+- a job past its deadline fails with `RequestTimeout` (504) and the stuck worker is killed and replaced;
+- a worker that dies costs the one job it held a `WorkerCrashed` (503) and is replaced; no other job notices.
+Futures are `concurrent.futures.Future`s, so HTTP (asyncio, via `asyncio.wrap_future`) and zenoh (threads) share
+the pool. Processes are started with "spawn": Open3D and threads do not mix with fork.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import itertools
+import logging
+import multiprocessing
+import os
+import signal
+import threading
+import time
+from collections import Counter, deque
+from dataclasses import dataclass, field
+from multiprocessing.connection import wait
+from typing import Any
+
+from cadreg.errors import CadregError, Overloaded, RequestTimeout, WorkerCrashed
+
+from .errors import error_from_body
+from .worker import THREAD_VARS, WORKER_NAME_PREFIX, worker_main
+
+log = logging.getLogger("cadreg.service.pool")
+
+_MAX_RESTART_BACKOFF_S = 30.0
+
+
+@dataclass
+class JobResult:
+    """What a localize job returns: the result dict, the bundle version that answered, where the time went."""
+
+    result: dict[str, Any]
+    site_version: str
+    worker_pid: int
+    queue_ms: float
+    run_ms: float
+
+
+@dataclass
+class _Job:
+    job_id: int
+    message: tuple
+    future: concurrent.futures.Future
+    submitted: float  # time.monotonic()
+    deadline: float
+    dispatched: float = 0.0
+
+
+@dataclass
+class _Control:
+    """A message every worker must process once (load a site); resolves when all have."""
+
+    job_id: int
+    message: tuple
+    future: concurrent.futures.Future
+    waiting: set[int] = field(default_factory=set)  # worker slots still to answer
+    errors: list[dict[str, Any]] = field(default_factory=list)
+
+    def settle(self, slot: int, outbox: list) -> None:
+        self.waiting.discard(slot)
+        if not self.waiting and not self.future.done():
+            exc = error_from_body(self.errors[0]) if self.errors else None
+            outbox.append((self.future, None, exc))
+
+
+@dataclass
+class _Worker:
+    slot: int
+    process: Any = None
+    conn: Any = None
+    state: str = "stopped"  # starting | idle | busy | control | dead | stopped
+    job: _Job | None = None
+    control: _Control | None = None
+    controls: deque = field(default_factory=deque)
+    start_deadline: float = 0.0
+    restart_at: float = 0.0
+    failures: int = 0  # consecutive start failures, for back-off
+    pid: int | None = None
+
+
+class WorkerPool:
+    """`workers` processes, each holding a Localizer per site; at most `workers + queue_depth` jobs at once.
+
+    sites : {site_id: bundle directory} loaded by every worker at start (and by every replacement).
+    """
+
+    def __init__(
+        self,
+        sites: dict[str, str],
+        *,
+        workers: int,
+        queue_depth: int,
+        timeout_s: float,
+        retry_after_s: float = 1.0,
+        start_timeout_s: float = 600.0,
+        localize_config: dict[str, Any] | None = None,
+        test_hooks: bool = False,
+    ) -> None:
+        self._sites = dict(sites)
+        self._n = workers
+        self._queue_depth = queue_depth
+        self._timeout_s = timeout_s
+        self._retry_after_s = retry_after_s
+        self._start_timeout_s = start_timeout_s
+        self._localize_config = localize_config
+        self._test_hooks = test_hooks
+        self._ctx = multiprocessing.get_context("spawn")
+        # The children inherit these at exec; the worker module sets them again before its own heavy imports, but a
+        # parent's __main__ re-imported by spawn may load numpy before that. The parent does no numeric work here.
+        for var in THREAD_VARS:
+            os.environ.setdefault(var, "1")
+        self._lock = threading.Lock()
+        self._queue: deque[_Job] = deque()
+        self._workers = [_Worker(slot=i) for i in range(workers)]
+        self._ids = itertools.count(1)
+        self._wake_r, self._wake_w = multiprocessing.Pipe(duplex=False)
+        self._woken = False
+        self._stopping = False
+        self._thread: threading.Thread | None = None
+        self._started_once: set[int] = set()
+        self.restarts: Counter[str] = Counter()  # reason -> count, read by the metrics collector
+        self.start_error: dict[str, Any] | None = None
+        # Futures are settled after the lock is released: their callbacks may call back into the pool.
+        self._outbox: list[tuple[concurrent.futures.Future, Any, BaseException | None]] = []
+
+    # --- public ---------------------------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Start the worker processes and the dispatcher; returns at once (see `ready`)."""
+        with self._lock:
+            for w in self._workers:
+                self._spawn(w)
+        self._thread = threading.Thread(target=self._run, name="cadreg-pool-dispatcher", daemon=True)
+        self._thread.start()
+
+    @property
+    def ready(self) -> bool:
+        """Every worker has loaded every site once, and at least one is serving now."""
+        with self._lock:
+            serving = sum(w.state in ("idle", "busy", "control") for w in self._workers)
+            return len(self._started_once) == self._n and serving > 0
+
+    def wait_ready(self, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.ready:
+                return True
+            time.sleep(0.05)
+        return self.ready
+
+    @property
+    def capacity(self) -> int:
+        return self._n + self._queue_depth
+
+    def queue_len(self) -> int:
+        with self._lock:
+            return len(self._queue)
+
+    def alive(self) -> int:
+        with self._lock:
+            return sum(w.state in ("idle", "busy", "control") for w in self._workers)
+
+    def workers_info(self) -> list[dict[str, Any]]:
+        with self._lock:
+            return [
+                {"slot": w.slot, "pid": w.pid, "state": w.state, "job_id": w.job.job_id if w.job else None}
+                for w in self._workers
+            ]
+
+    def submit(self, site_id: str, version: str | None, parts: dict[str, bytes], meta_json: str,
+               timeout_s: float | None = None) -> concurrent.futures.Future:
+        """Queue one localize job; the future yields a JobResult or raises a CadregError.
+
+        Raises Overloaded at once when `workers + queue_depth` jobs are already waiting or running.
+        """
+        now = time.monotonic()
+        future: concurrent.futures.Future = concurrent.futures.Future()
+        with self._lock:
+            if self._stopping:
+                raise Overloaded("the service is shutting down", retry_after_s=self._retry_after_s)
+            idle = sum(w.state == "idle" and not w.controls for w in self._workers)
+            if len(self._queue) >= self._queue_depth + idle:
+                raise Overloaded(
+                    f"all {self._n} workers are busy and {len(self._queue)} requests are waiting",
+                    retry_after_s=self._retry_after_s,
+                    detail={"queue": len(self._queue), "workers": self._n},
+                )
+            job_id = next(self._ids)
+            job = _Job(job_id, ("localize", job_id, site_id, version, parts, meta_json), future, now,
+                       now + (timeout_s or self._timeout_s))
+            self._queue.append(job)
+        self._wake()
+        return future
+
+    def load_site(self, site_id: str, path: str) -> concurrent.futures.Future:
+        """Have every worker load `site_id` from `path`, keeping the version it replaces for jobs already dispatched
+        to it. Resolves to None once every worker has it (a worker replaced meanwhile loads it when it is up), or
+        raises the first worker's error; only on success do replacements start with the new path."""
+        future: concurrent.futures.Future = concurrent.futures.Future()
+        with self._lock:
+            job_id = next(self._ids)
+            control = _Control(job_id, ("load", job_id, site_id, path), future)
+            for w in self._workers:
+                control.waiting.add(w.slot)
+                w.controls.append(control)
+
+        def adopt(f: concurrent.futures.Future) -> None:
+            if not f.cancelled() and f.exception() is None:
+                with self._lock:
+                    self._sites[site_id] = path
+
+        future.add_done_callback(adopt)
+        self._wake()
+        return future
+
+    def site_paths(self) -> dict[str, str]:
+        """{site_id: bundle directory} that a replacement worker loads."""
+        with self._lock:
+            return dict(self._sites)
+
+    def kill_worker(self, slot: int) -> None:
+        """SIGKILL one worker (used by the debug route in tests)."""
+        with self._lock:
+            pid = self._workers[slot].pid
+        if pid:
+            os.kill(pid, signal.SIGKILL)
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """Stop the dispatcher and the workers; jobs still queued fail with Overloaded."""
+        with self._lock:
+            self._stopping = True
+            queued = list(self._queue)
+            self._queue.clear()
+        for job in queued:
+            _settle(job.future, exc=Overloaded("the service is shutting down", retry_after_s=self._retry_after_s))
+        self._wake()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+        for w in self._workers:
+            if w.conn is not None:
+                try:
+                    w.conn.send(("stop",))
+                except (OSError, ValueError):
+                    pass
+        deadline = time.monotonic() + timeout_s
+        for w in self._workers:
+            if w.process is not None:
+                w.process.join(max(0.0, deadline - time.monotonic()))
+                if w.process.is_alive():
+                    w.process.kill()
+                    w.process.join(1.0)
+            if w.job is not None:
+                _settle(w.job.future, exc=Overloaded("the service is shutting down", retry_after_s=self._retry_after_s))
+            for control in ([w.control] if w.control else []) + list(w.controls):
+                _settle(control.future, exc=Overloaded("the service is shutting down",
+                                                       retry_after_s=self._retry_after_s))
+            w.controls.clear()
+            if w.conn is not None:
+                w.conn.close()
+            w.state = "stopped"
+        self._wake_r.close()
+        self._wake_w.close()
+
+    # --- dispatcher -----------------------------------------------------------------------------------------------
+
+    def _resolve(self, future: concurrent.futures.Future, value: Any) -> None:
+        self._outbox.append((future, value, None))
+
+    def _fail(self, future: concurrent.futures.Future, exc: BaseException) -> None:
+        self._outbox.append((future, None, exc))
+
+    def _flush(self) -> None:
+        """Settle the futures decided under the lock (call without the lock held)."""
+        with self._lock:
+            outbox, self._outbox = self._outbox, []
+        for future, value, exc in outbox:
+            _settle(future, value, exc)
+
+    def _wake(self) -> None:
+        with self._lock:
+            if self._woken:
+                return
+            self._woken = True
+        try:
+            self._wake_w.send_bytes(b"w")
+        except (OSError, ValueError):
+            pass
+
+    def _spawn(self, w: _Worker) -> None:
+        """Start a process for slot `w` (lock held)."""
+        parent_conn, child_conn = self._ctx.Pipe(duplex=True)
+        sites = sorted(self._sites.items())
+        process = self._ctx.Process(
+            target=worker_main,
+            args=(child_conn, sites, self._localize_config, self._test_hooks),
+            name=f"{WORKER_NAME_PREFIX}-{w.slot}",
+            daemon=True,
+        )
+        process.start()
+        child_conn.close()
+        w.process, w.conn, w.pid = process, parent_conn, process.pid
+        w.state, w.job, w.control = "starting", None, None
+        # Controls still queued for this slot (a reload under way) are kept: the new process runs them once up.
+        w.start_deadline = time.monotonic() + self._start_timeout_s
+        log.info("worker %d starting (pid %d)", w.slot, process.pid)
+
+    def _retire(self, w: _Worker, reason: str, exc: CadregError | None) -> None:
+        """The process of `w` is dead or must die: fail its job, keep its unfinished reload for the replacement,
+        schedule the replacement (at once, or with back-off after failed starts)."""
+        if w.process is not None and w.process.is_alive():
+            w.process.kill()
+            w.process.join(1.0)
+        if w.conn is not None:
+            w.conn.close()
+        if w.job is not None:
+            self._fail(w.job.future, exc or WorkerCrashed(
+                "the worker process holding this request died; it is being replaced",
+                detail={"retry_after_s": self._retry_after_s}))
+        if w.control is not None:
+            w.controls.appendleft(w.control)  # the replacement redoes the load this process did not finish
+        w.process, w.conn, w.job, w.control, w.pid = None, None, None, None, None
+        w.state = "dead"
+        self.restarts[reason] += 1
+        backoff = 0.0 if reason != "start_failed" else min(_MAX_RESTART_BACKOFF_S, 0.5 * 2 ** w.failures)
+        w.restart_at = time.monotonic() + backoff
+        log.warning("worker %d retired (%s); restarting in %.1f s", w.slot, reason, backoff)
+
+    def _handle(self, w: _Worker, msg: tuple) -> None:
+        kind = msg[0]
+        now = time.monotonic()
+        if kind == "ready":
+            w.state, w.failures = "idle", 0
+            self._started_once.add(w.slot)
+            self.start_error = None
+            log.info("worker %d ready (pid %d): %s", w.slot, msg[1], msg[2])
+        elif kind == "failed":
+            w.failures += 1
+            self.start_error = msg[1]
+            log.error("worker %d failed to start: %s", w.slot, msg[1].get("message"))
+            self._retire(w, "start_failed", None)
+        elif kind == "result" and w.job is not None and msg[1] == w.job.job_id:
+            job, w.job, w.state = w.job, None, "idle"
+            _, _, ok, body, version = msg
+            if ok:
+                self._resolve(job.future, JobResult(body, version, w.pid or 0,
+                                               (job.dispatched - job.submitted) * 1e3, (now - job.dispatched) * 1e3))
+            else:
+                self._fail(job.future, error_from_body(body))
+        elif kind == "loaded" and w.control is not None and msg[1] == w.control.job_id:
+            control, w.control, w.state = w.control, None, "idle"
+            if not msg[2]:
+                control.errors.append(msg[3])
+            control.settle(w.slot, self._outbox)
+        else:
+            log.error("worker %d sent an unexpected message %r", w.slot, kind)
+
+    def _assign(self, now: float) -> None:
+        """Give idle workers their pending controls first, then queued jobs (lock held)."""
+        for w in self._workers:
+            if w.state != "idle":
+                continue
+            if w.controls:
+                control = w.controls.popleft()
+                try:
+                    w.conn.send(control.message)
+                except (OSError, ValueError):
+                    w.controls.appendleft(control)
+                    self._retire(w, "crashed", None)
+                    continue
+                w.control, w.state = control, "control"
+                continue
+            while self._queue:
+                job = self._queue.popleft()
+                if not job.future.set_running_or_notify_cancel():
+                    continue  # the caller gave up (client went away)
+                if now >= job.deadline:
+                    self._fail(job.future, RequestTimeout(f"waited {now - job.submitted:.1f} s in the queue"))
+                    continue
+                job.dispatched = now
+                try:
+                    w.conn.send(job.message)
+                except (OSError, ValueError):
+                    w.job = job
+                    self._retire(w, "crashed", None)
+                    break
+                w.job, w.state = job, "busy"
+                break
+
+    def _expire(self, now: float) -> None:
+        """Time out queued jobs and stuck workers; replace workers that did not start in time (lock held)."""
+        expired = [j for j in self._queue if now >= j.deadline]
+        if expired:
+            self._queue = deque(j for j in self._queue if now < j.deadline)
+            for job in expired:
+                self._fail(job.future, RequestTimeout(f"no worker free within {job.deadline - job.submitted:.1f} s"))
+        for w in self._workers:
+            if w.state == "busy" and w.job is not None and now >= w.job.deadline:
+                spent = now - w.job.submitted
+                self._retire(w, "timeout", RequestTimeout(f"the request ran past its {spent:.1f} s deadline"))
+            elif w.state == "starting" and now >= w.start_deadline:
+                self._retire(w, "start_timeout", None)
+
+    def _next_timeout(self, now: float) -> float:
+        times = [j.deadline for j in self._queue]
+        for w in self._workers:
+            if w.state == "busy" and w.job is not None:
+                times.append(w.job.deadline)
+            elif w.state == "starting":
+                times.append(w.start_deadline)
+            elif w.state == "dead":
+                times.append(w.restart_at)
+        return max(0.0, min(times) - now) if times else 1.0
+
+    def _run(self) -> None:
+        while not self._stopping:
+            try:
+                self._step()
+            except Exception:
+                # A bug here must not silently stop every request: log it and keep dispatching.
+                log.exception("pool dispatcher error")
+                time.sleep(0.05)
+            self._flush()
+        self._flush()
+
+    def _step(self) -> None:
+        with self._lock:
+            if self._stopping:
+                return
+            now = time.monotonic()
+            objects: list[Any] = [self._wake_r]
+            owners: dict[Any, _Worker] = {}
+            for w in self._workers:
+                if w.process is not None:
+                    objects += [w.conn, w.process.sentinel]
+                    owners[w.conn] = owners[w.process.sentinel] = w
+            timeout = self._next_timeout(now)
+        ready = wait(objects, timeout)
+        with self._lock:
+            if self._stopping:
+                return
+            if self._wake_r in ready:
+                while self._wake_r.poll():
+                    self._wake_r.recv_bytes()
+                self._woken = False
+            for w in {id(owners[o]): owners[o] for o in ready if o in owners}.values():
+                self._service(w)
+            now = time.monotonic()
+            self._expire(now)
+            for w in self._workers:
+                if w.state == "dead" and now >= w.restart_at:
+                    self._spawn(w)
+            self._assign(now)
+
+    def _service(self, w: _Worker) -> None:
+        """Read what worker `w` sent; a closed pipe or a fired sentinel means it died (lock held)."""
+        if w.process is None:
+            return
+        try:
+            while w.conn.poll():
+                self._handle(w, w.conn.recv())
+                if w.process is None:
+                    return
+        except (EOFError, OSError):
+            pass
+        if not w.process.is_alive():
+            code = w.process.exitcode
+            log.error("worker %d (pid %s) died with exit code %s", w.slot, w.pid, code)
+            if w.state == "starting":
+                w.failures += 1  # dying while loading is likely to repeat: back off
+                self._retire(w, "start_failed", None)
+            else:
+                self._retire(w, "crashed", None)
+
+
+def _settle(future: concurrent.futures.Future, value: Any = None, exc: BaseException | None = None) -> None:
+    try:
+        if exc is not None:
+            future.set_exception(exc)
+        else:
+            future.set_result(value)
+    except concurrent.futures.InvalidStateError:
+        pass  # cancelled by its caller, or already settled

@@ -1,0 +1,150 @@
+"""The service core shared by the HTTP and zenoh front ends: settings, site registry, worker pool, metrics.
+
+Front ends call `submit` (returns a `concurrent.futures.Future` of a JobResult; raises at once for an unknown
+site, bad meta or a full queue) and `finish` (the result body). Everything blocking here (`start`, `reload_site`,
+`install_archive`) is meant for a thread, never the event loop.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import logging
+import shutil
+import threading
+from pathlib import Path
+from typing import Any
+
+from cadreg.errors import InvalidFileError, InvalidFrame, Overloaded, UnknownSite
+
+from .codec import PART_NAMES, REQUIRED_PARTS, parse_meta
+from .metrics import Metrics
+from .pool import JobResult, WorkerPool
+from .registry import SiteEntry, SiteRegistry, inspect_bundle
+from .schemas import FrameMeta
+from .settings import Settings
+
+log = logging.getLogger("cadreg.service")
+
+def ensure_demo_site(cache_dir: Path) -> Path:
+    """The bundled demo site under `cache_dir/<site id>`, built on first use (or rebuilt when the cached one fails
+    its hash check). `build_demo_site` writes its inputs beside the bundle: they go to a hidden build directory
+    (the registry skips dot-directories) and only the bundle is kept."""
+    from cadreg.site.demo import SITE_ID, build_demo_site
+
+    target = cache_dir / SITE_ID
+    if (target / "site.json").is_file():
+        try:
+            inspect_bundle(target)
+            return target
+        except InvalidFileError as exc:
+            log.warning("cached demo site is unusable (%s): rebuilding", exc.message)
+            shutil.rmtree(target, ignore_errors=True)
+    build_dir = cache_dir / ".demo-build"
+    shutil.rmtree(build_dir, ignore_errors=True)
+    build_dir.mkdir(parents=True)
+    log.info("building the demo site into %s", target)
+    build_demo_site(build_dir)
+    shutil.rmtree(target, ignore_errors=True)
+    (build_dir / "site").rename(target)
+    shutil.rmtree(build_dir, ignore_errors=True)
+    return target
+
+
+class Service:
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.registry = SiteRegistry(settings.sites_root)
+        self.pool: WorkerPool | None = None
+        self.metrics = Metrics(lambda: self.pool, lambda: self.registry)
+        self.started = threading.Event()
+
+    # --- life cycle -------------------------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Load the registry (building the demo site if serving it), start the workers; returns before the workers
+        have loaded their sites (see `ready`). A bad bundle raises here, so a bad start fails loudly."""
+        s = self.settings
+        if s.demo_mode:
+            ensure_demo_site(s.demo_cache_dir)
+        entries = self.registry.load_all()
+        if not entries:
+            raise InvalidFileError(s.sites_root, "no site bundle here (expected <dir>/<site_id>/site.json)")
+        self.pool = WorkerPool(
+            self.registry.paths(),
+            workers=s.workers,
+            queue_depth=s.queue_depth,
+            timeout_s=s.request_timeout_s,
+            retry_after_s=s.retry_after_s,
+            start_timeout_s=s.worker_start_timeout_s,
+            test_hooks=s.test_hooks,
+        )
+        self.pool.start()
+        self.started.set()
+
+    def stop(self) -> None:
+        if self.pool is not None:
+            self.pool.stop()
+
+    @property
+    def ready(self) -> bool:
+        return self.started.is_set() and self.pool is not None and self.pool.ready
+
+    # --- localize ---------------------------------------------------------------------------------------------------
+
+    def submit(self, site_id: str, parts: dict[str, bytes], meta: FrameMeta | str | bytes | dict,
+               timeout_s: float | None = None) -> concurrent.futures.Future:
+        """Validate what is cheap (site, meta, parts present) and queue the job; images are decoded in the worker."""
+        entry = self.registry.get(site_id)
+        meta = parse_meta(meta)
+        unknown = sorted(set(parts) - set(PART_NAMES))
+        if unknown:
+            raise InvalidFrame(f"unknown part(s): {', '.join(unknown)}", detail={"parts": unknown})
+        for name in REQUIRED_PARTS:
+            if not parts.get(name):
+                raise InvalidFrame(f"missing part: {name}", detail={"part": name})
+        if self.pool is None:
+            raise Overloaded("the service is starting", retry_after_s=self.settings.retry_after_s)
+        return self.pool.submit(site_id, entry.version, parts, meta.model_dump_json(), timeout_s)
+
+    def finish(self, job: JobResult, site_id: str, request_id: str) -> dict[str, Any]:
+        """The answer body: the result plus request id, site id and the bundle version that answered."""
+        self.metrics.observe_job(job)
+        return {**job.result, "request_id": request_id, "site_id": site_id, "site_version": job.site_version}
+
+    # --- admin ------------------------------------------------------------------------------------------------------
+
+    def reload_site(self, site_id: str, bundle_dir: Path | None = None) -> SiteEntry:
+        """(Re)load `site_id` from `bundle_dir` (default `<root>/<site_id>`): validate, have every worker load it,
+        then swap. Blocking; run in a thread."""
+        path = Path(bundle_dir) if bundle_dir is not None else self.registry.root / site_id
+        if not (path / "site.json").is_file():
+            raise UnknownSite(f"no bundle for site {site_id!r} at {path}", detail={"site_id": site_id})
+        with self.registry.reload_lock(site_id):
+            entry = inspect_bundle(path)
+            if entry.site_id != site_id:
+                raise InvalidFileError(path / "site.json", f"bundle is site {entry.site_id!r}, not {site_id!r}")
+            self._load_everywhere(entry)
+            self.registry.swap(entry)
+            return entry
+
+    def install_archive(self, site_id: str, archive: Path) -> SiteEntry:
+        """Unpack an uploaded bundle archive, validate it, install it as `<root>/<site_id>` and swap it in."""
+        with self.registry.reload_lock(site_id):
+            staged = self.registry.stage_archive(site_id, archive)
+            try:
+                entry = inspect_bundle(staged)
+                if entry.site_id != site_id:
+                    raise InvalidFileError("upload", f"bundle is site {entry.site_id!r}, not {site_id!r}")
+            except Exception:
+                shutil.rmtree(staged.parent if staged.parent.name != ".incoming" else staged, ignore_errors=True)
+                raise
+            target = self.registry.install(site_id, staged)
+            entry = inspect_bundle(target)
+            self._load_everywhere(entry)
+            self.registry.swap(entry)
+            return entry
+
+    def _load_everywhere(self, entry: SiteEntry) -> None:
+        if self.pool is None:
+            raise Overloaded("the service is starting", retry_after_s=self.settings.retry_after_s)
+        self.pool.load_site(entry.site_id, entry.path).result(timeout=self.settings.worker_start_timeout_s)

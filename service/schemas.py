@@ -1,0 +1,132 @@
+"""Wire schemas shared by the service and the clients (pydantic, `extra="forbid"`).
+
+A frame travels as binary image parts (PNG/JPEG, see `service/codec.py`) plus one `FrameMeta` JSON document; the
+answer is `LocalizationResult.to_dict()` plus `request_id` and `site_version`; every error is one `ErrorBody`.
+Matrices are 4×4 row-major lists of floats: `T_color_depth` moves depth-camera points into the colour camera,
+`pose_prior` is a `T_map_camera` (colour camera -> map). Metres everywhere.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+WIRE_VERSION = 1
+MAX_TOP_K = 20
+
+
+class _Wire(BaseModel):
+    # NaN and inf are never valid on the wire: JSON parsers accept them, so refuse them here, once.
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class Intrinsics(_Wire):
+    """Pinhole intrinsics in pixels, pixel-centre convention (u - cx); the size comes from the image itself."""
+
+    fx: float = Field(gt=0, description="focal length along x, pixels")
+    fy: float = Field(gt=0, description="focal length along y, pixels")
+    cx: float = Field(description="principal point x, pixels (pixel-centre convention)")
+    cy: float = Field(description="principal point y, pixels (pixel-centre convention)")
+
+
+def _check_matrix4(value: list[list[float]] | None) -> list[list[float]] | None:
+    if value is None:
+        return None
+    if len(value) != 4 or any(len(row) != 4 for row in value):
+        raise ValueError("must be a 4x4 matrix (4 rows of 4 numbers)")
+    if not all(math.isfinite(x) for row in value for x in row):
+        raise ValueError("must hold finite numbers only")
+    return value
+
+
+class FrameMeta(_Wire):
+    """Everything about a frame that is not pixels."""
+
+    frame_id: str | None = Field(None, max_length=256, description="echoed in the result")
+    depth_intrinsics: Intrinsics = Field(description="intrinsics of the depth image (its size is the depth PNG's)")
+    color_intrinsics: Intrinsics | None = Field(
+        None, description="intrinsics of the colour image; None = same camera as depth (colour must then have the depth size)"
+    )
+    T_color_depth: list[list[float]] | None = Field(None, description="4x4 depth camera -> colour camera; None = identity")
+    depth_scale: float = Field(1000.0, gt=0, description="depth units per metre (1000 = millimetres)")
+    label_set: str = Field("nyu40", min_length=1, max_length=64, description="label set of the `labels` image")
+    gravity: list[float] | None = Field(
+        None, min_length=3, max_length=3, description="gravity ('down') [gx, gy, gz] in the colour camera frame"
+    )
+    pose_prior: list[list[float]] | None = Field(None, description="4x4 T_map_camera prior (colour camera -> map)")
+    top_k: int = Field(5, ge=1, le=MAX_TOP_K, description="hypotheses to return")
+
+    @field_validator("T_color_depth", "pose_prior")
+    @classmethod
+    def _matrix4(cls, value: list[list[float]] | None) -> list[list[float]] | None:
+        return _check_matrix4(value)
+
+    @field_validator("gravity")
+    @classmethod
+    def _gravity(cls, value: list[float] | None) -> list[float] | None:
+        if value is not None and math.sqrt(sum(x * x for x in value)) < 1e-6:
+            raise ValueError("gravity must be a non-zero vector")
+        return value
+
+
+class ErrorBody(BaseModel):
+    """The one error body of HTTP responses and zenoh `reply_err`."""
+
+    code: str = Field(description="stable machine-readable code, e.g. invalid_frame, unknown_site, overloaded")
+    message: str
+    request_id: str | None = None
+    detail: dict[str, Any] = Field(default_factory=dict)
+
+
+class PoseOut(BaseModel):
+    translation: list[float]
+    quaternion_wxyz: list[float]
+
+
+class LocalizeResponse(BaseModel):
+    """`LocalizationResult.to_dict()` plus the request id and the bundle version that answered (DESIGN §5)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    status: str = Field(description="ok | ambiguous | no_objects | no_match | low_overlap | failed")
+    frame_id: str | None = None
+    T_map_camera: list[list[float]] | None = Field(None, description="4x4 colour camera -> map; None unless ok/ambiguous")
+    pose: PoseOut | None = None
+    confidence: float = 0.0
+    covariance: list[list[float]] | None = None
+    hypotheses: list[dict[str, Any]] = Field(default_factory=list)
+    diagnostics: dict[str, Any] = Field(default_factory=dict)
+    request_id: str
+    site_id: str
+    site_version: str
+
+
+class SiteSummary(BaseModel):
+    site_id: str
+    version: str
+
+
+class SiteList(BaseModel):
+    sites: list[SiteSummary]
+
+
+class SiteInfo(BaseModel):
+    site_id: str
+    version: str
+    nodes: int = Field(description="objects in the semantic graph")
+    edges: int
+    points: int = Field(description="points in the enhanced map")
+    classes: list[str]
+
+
+class Health(BaseModel):
+    status: str
+
+
+class Readiness(BaseModel):
+    ready: bool
+    sites: list[SiteSummary] = Field(default_factory=list)
+    workers_alive: int = 0
+    workers: int = 0

@@ -1,0 +1,99 @@
+"""Service settings: one `Settings` (environment prefix `CADREG_`), built by the runner and passed into
+`create_app(settings)`; there is no module-level instance. Bad values fail at construction with a message naming
+the setting (`settings_from(...)` turns pydantic's error into a `ConfigError`).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import Field, SecretStr, ValidationError, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from cadreg.errors import ConfigError
+
+# zenoh locators: <protocol>/<address>[#<config>], e.g. tcp/127.0.0.1:7447, udp/[::1]:7447
+_ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream|unixpipe)/\S+$")
+
+
+def _default_cache_dir() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "cadreg" / "sites"
+
+
+def _default_workers() -> int:
+    # Two processes doubled throughput on 2 cores (DESIGN §9); more than the cores only adds memory.
+    return max(1, min(2, os.cpu_count() or 1))
+
+
+class Settings(BaseSettings):
+    """Everything the service reads from its environment (`CADREG_<NAME>`) or command line."""
+
+    model_config = SettingsConfigDict(env_prefix="CADREG_", extra="forbid", frozen=True)
+
+    sites_dir: Path | None = Field(None, description="directory of site bundles (one sub-directory each); None = the demo site")
+    demo_cache_dir: Path = Field(default_factory=_default_cache_dir, description="where the demo site is built when sites_dir is None")
+    host: str = Field("127.0.0.1", min_length=1)
+    port: int = Field(8080, ge=0, le=65535)
+    workers: int = Field(default_factory=_default_workers, ge=1, le=64, description="worker processes")
+    queue_depth: int = Field(4, ge=0, le=10_000, description="requests waiting for a worker beyond those running; more -> 503")
+    request_timeout_s: float = Field(30.0, gt=0, le=3600, description="deadline from arrival to answer; past it -> 504")
+    worker_start_timeout_s: float = Field(600.0, gt=0, description="a worker that has not loaded its sites by then is replaced")
+    retry_after_s: float = Field(1.0, gt=0, le=3600, description="Retry-After sent with 503")
+    max_upload_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="largest localize request body")
+    max_bundle_bytes: int = Field(2 * 1024 * 1024 * 1024, ge=1024, description="largest site archive uploaded by PUT")
+    admin_token: SecretStr | None = Field(None, description="bearer token of the admin routes; None = admin routes refuse")
+    zenoh_enabled: bool = True
+    zenoh_mode: Literal["peer", "client", "router"] = "peer"
+    zenoh_listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    zenoh_connect: list[str] = Field(default_factory=list)
+    zenoh_multicast_scouting: bool = Field(False, description="off unless asked: a peer would otherwise scout the LAN")
+    zenoh_gossip_scouting: bool = False
+    stream_queue_per_device: int = Field(2, ge=1, le=1000, description="frames kept per streaming device; older ones are dropped")
+    log_requests: bool = True
+    test_hooks: bool = Field(
+        False, description="tests only: a frame id '__sleep__:<s>' makes the worker sleep; /debug/workers lists pids"
+    )
+
+    @field_validator("zenoh_listen", "zenoh_connect")
+    @classmethod
+    def _endpoints(cls, value: list[str]) -> list[str]:
+        for endpoint in value:
+            if not _ENDPOINT.match(endpoint):
+                raise ValueError(f"{endpoint!r} is not a zenoh endpoint such as tcp/127.0.0.1:7447")
+        return value
+
+    @field_validator("sites_dir")
+    @classmethod
+    def _sites_dir(cls, value: Path | None) -> Path | None:
+        if value is not None and not value.is_dir():
+            raise ValueError(f"{value} is not a directory")
+        return value
+
+    @model_validator(mode="after")
+    def _zenoh_reachable(self) -> "Settings":
+        if self.zenoh_enabled and self.zenoh_mode == "client" and not self.zenoh_connect:
+            raise ValueError("zenoh_mode 'client' needs zenoh_connect endpoints (a router to talk to)")
+        return self
+
+    @property
+    def sites_root(self) -> Path:
+        """Where bundles live: `sites_dir`, or the demo cache when serving the demo site."""
+        return self.sites_dir if self.sites_dir is not None else self.demo_cache_dir
+
+    @property
+    def demo_mode(self) -> bool:
+        return self.sites_dir is None
+
+
+def settings_from(**overrides: Any) -> Settings:
+    """Settings from the environment plus explicit overrides (None values are ignored); bad values -> ConfigError."""
+    values = {k: v for k, v in overrides.items() if v is not None}
+    try:
+        return Settings(**values)
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(str(p) for p in e['loc']) or 'settings'}: {e['msg']}" for e in exc.errors())
+        raise ConfigError(f"bad service settings: {problems}") from None

@@ -1,0 +1,146 @@
+"""The worker process: loads every site's Localizer once, then answers jobs from its pipe one at a time.
+
+Runs in a "spawn" child (Open3D and threads do not mix with fork). Numeric libraries get one thread each: the
+variables below are set before numpy/open3d are imported in this process, which is why the heavy imports live inside
+the functions. Messages (tuples over a `multiprocessing` Pipe):
+
+    parent -> worker   ("localize", job_id, site_id, version, parts: dict[str, bytes], meta_json: str)
+                       ("load", job_id, site_id, path)     load (or reload) one site; keeps the previous version
+                       ("stop",)
+    worker -> parent   ("ready", pid, [[site_id, version], ...])
+                       ("result", job_id, True, result_dict, version_used)
+                       ("result", job_id, False, error_body, None)
+                       ("loaded", job_id, True, [site_id, version] | error_body)
+                       ("failed", error_body)              start-up failed (a site could not be loaded)
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+
+WORKER_NAME_PREFIX = "cadreg-worker"
+THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS", "VECLIB_MAXIMUM_THREADS")
+# Only in the child: spawn names the process before it unpickles the target, i.e. before this import.
+if multiprocessing.current_process().name.startswith(WORKER_NAME_PREFIX):
+    for _var in THREAD_VARS:
+        os.environ[_var] = "1"
+
+import logging  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from collections import OrderedDict  # noqa: E402
+from typing import Any  # noqa: E402
+
+SLEEP_HOOK_PREFIX = "__sleep__:"  # test hook (settings.test_hooks): frame id "__sleep__:<seconds>"
+VERSIONS_KEPT = 2  # the version being replaced stays for requests already dispatched to it
+
+log = logging.getLogger("cadreg.service.worker")
+
+
+class _Sites:
+    """Localizers by site id, newest version last; keeps `VERSIONS_KEPT` versions per site."""
+
+    def __init__(self, localize_config: dict[str, Any] | None) -> None:
+        from cadreg.config import LocalizeConfig
+
+        self.config = LocalizeConfig.model_validate(localize_config or {})
+        self.by_site: dict[str, OrderedDict[str, Any]] = {}
+
+    def load(self, site_id: str, path: str) -> str:
+        from cadreg.errors import UnknownSite
+        from cadreg.localize.localizer import Localizer
+        from cadreg.site.bundle import Site
+
+        site = Site.load(path)
+        if site.site_id != site_id:
+            raise UnknownSite(f"bundle at {path} is site {site.site_id!r}, expected {site_id!r}")
+        localizer = Localizer.from_site(site, self.config)
+        versions = self.by_site.setdefault(site_id, OrderedDict())
+        versions.pop(site.version, None)
+        versions[site.version] = localizer
+        while len(versions) > VERSIONS_KEPT:
+            versions.popitem(last=False)
+        return site.version
+
+    def get(self, site_id: str, version: str | None) -> tuple[Any, str]:
+        from cadreg.errors import UnknownSite
+
+        versions = self.by_site.get(site_id)
+        if not versions:
+            raise UnknownSite(f"unknown site {site_id!r}")
+        if version in versions:
+            return versions[version], version
+        # Asked for a version already replaced twice over: answer with the newest, and say so in the result.
+        newest = next(reversed(versions))
+        return versions[newest], newest
+
+    def loaded(self) -> list[list[str]]:
+        return [[sid, v] for sid, versions in self.by_site.items() for v in versions]
+
+
+def _error_body(exc: BaseException) -> dict[str, Any]:
+    from .errors import error_body
+
+    return error_body(exc)
+
+
+def _localize(sites: _Sites, msg: tuple, test_hooks: bool) -> tuple:
+    from .codec import decode_frame, parse_meta
+
+    _, job_id, site_id, version, parts, meta_json = msg
+    try:
+        meta = parse_meta(meta_json)
+        if test_hooks and meta.frame_id and meta.frame_id.startswith(SLEEP_HOOK_PREFIX):
+            time.sleep(float(meta.frame_id[len(SLEEP_HOOK_PREFIX):]))
+        localizer, used = sites.get(site_id, version)
+        frame = decode_frame(parts, meta)
+        result = localizer.localize(frame, top_k=meta.top_k)
+        return ("result", job_id, True, result.to_dict(), used)
+    except Exception as exc:  # every failure goes back as an error body; the worker lives on
+        if not hasattr(exc, "code"):
+            log.exception("job %s failed", job_id)
+        return ("result", job_id, False, _error_body(exc), None)
+
+
+def worker_main(conn, sites: list[tuple[str, str]], localize_config: dict[str, Any] | None, test_hooks: bool) -> None:
+    """Entry point of a worker process; `sites` = [(site_id, bundle_dir)]."""
+    import signal
+
+    # Ctrl-C in a terminal reaches the whole process group; the parent stops the workers in order.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s[%(process)d]: %(message)s")
+    if "numpy" in sys.modules and os.environ.get("OMP_NUM_THREADS") != "1":
+        log.warning("numpy was imported before the worker set its thread limits")
+    try:
+        loaded = _Sites(localize_config)
+        for site_id, path in sites:
+            loaded.load(site_id, path)
+    except Exception as exc:
+        log.exception("worker start-up failed")
+        conn.send(("failed", _error_body(exc)))
+        return
+    conn.send(("ready", os.getpid(), loaded.loaded()))
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return  # the parent went away
+        kind = msg[0]
+        if kind == "stop":
+            return
+        if kind == "localize":
+            reply = _localize(loaded, msg, test_hooks)
+        elif kind == "load":
+            _, job_id, site_id, path = msg
+            try:
+                reply = ("loaded", job_id, True, [site_id, loaded.load(site_id, path)])
+            except Exception as exc:
+                reply = ("loaded", job_id, False, _error_body(exc))
+        else:
+            log.error("unknown message %r", kind)
+            continue
+        try:
+            conn.send(reply)
+        except (EOFError, OSError, BrokenPipeError):
+            return

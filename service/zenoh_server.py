@@ -1,0 +1,278 @@
+"""The zenoh front end, in the HTTP app's process, on the same worker pool.
+
+Key expressions:
+    cadreg/<site_id>/localize              queryable: query payload = frame envelope (service/codec.py);
+                                           reply = result JSON (application/json), or reply_err with the error body
+    cadreg/<site_id>/frames/<device_id>    stream mode: subscribed (wildcard cadreg/*/frames/*), payload = envelope
+    cadreg/<site_id>/poses/<device_id>     stream mode: result JSON published per frame, frame id echoed; errors are
+                                           published as the error body with detail.frame_id
+zenoh callbacks only enqueue (zenoh-python: never block or call zenoh inside a callback); threads of our own drain
+the queues, submit to the pool and reply/publish when the future is done. A streaming device that outruns the pool
+loses its oldest frames (bounded deque per device), counted in cadreg_zenoh_dropped_frames_total.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+import uuid
+from collections import deque
+from dataclasses import dataclass, field
+import zenoh
+
+from cadreg.errors import CadregError, ConfigError, InvalidFrame, Overloaded
+
+from .codec import ERROR_ENCODING, RESULT_ENCODING, encode_result, unpack_envelope
+from .errors import error_body
+from .runtime import Service
+from .settings import Settings
+
+log = logging.getLogger("cadreg.service.zenoh")
+
+QUERY_KEY = "cadreg/*/localize"
+FRAMES_KEY = "cadreg/*/frames/*"
+_OVERLOAD_RETRY_S = 0.02  # a stream frame refused by a full pool waits this long before the next try
+
+
+def zenoh_config(settings: Settings) -> zenoh.Config:
+    """A zenoh Config from the settings; multicast and gossip scouting are off unless asked for."""
+    config = zenoh.Config()
+    config.insert_json5("mode", json.dumps(settings.zenoh_mode))
+    config.insert_json5("listen/endpoints", json.dumps(list(settings.zenoh_listen)))
+    config.insert_json5("connect/endpoints", json.dumps(list(settings.zenoh_connect)))
+    config.insert_json5("scouting/multicast/enabled", json.dumps(settings.zenoh_multicast_scouting))
+    config.insert_json5("scouting/gossip/enabled", json.dumps(settings.zenoh_gossip_scouting))
+    return config
+
+
+def _site_of(key: str, suffix_parts: int) -> tuple[str, list[str]]:
+    chunks = key.split("/")
+    return chunks[1], chunks[2 : 2 + suffix_parts]
+
+
+@dataclass
+class _Device:
+    site_id: str
+    device_id: str
+    frames: deque = field(default_factory=deque)
+    in_flight: bool = False
+
+
+class ZenohServer:
+    def __init__(self, service: Service, settings: Settings) -> None:
+        self.service = service
+        self.settings = settings
+        self.session: zenoh.Session | None = None
+        self._queryable = None
+        self._subscriber = None
+        self._queries: queue.SimpleQueue = queue.SimpleQueue()
+        self._outbox: queue.SimpleQueue = queue.SimpleQueue()  # (callable,) run on the reply thread
+        self._devices: dict[tuple[str, str], _Device] = {}
+        self._cond = threading.Condition()
+        self._stopping = False
+        self._threads: list[threading.Thread] = []
+
+    # --- life cycle -------------------------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Open the session and declare the queryable and the subscriber; a session that cannot open (an endpoint
+        in use, a bad locator) raises ConfigError naming the endpoints."""
+        try:
+            self.session = zenoh.open(zenoh_config(self.settings))
+        except zenoh.ZError as exc:
+            raise ConfigError(f"zenoh could not open a {self.settings.zenoh_mode} session listening on "
+                              f"{self.settings.zenoh_listen}, connecting to {self.settings.zenoh_connect}: {exc}") from None
+        self._queryable = self.session.declare_queryable(QUERY_KEY, self._on_query)
+        self._subscriber = self.session.declare_subscriber(FRAMES_KEY, self._on_frame)
+        for target, name in ((self._drain_queries, "queries"), (self._drain_outbox, "replies"),
+                             (self._drain_streams, "streams")):
+            t = threading.Thread(target=target, name=f"cadreg-zenoh-{name}", daemon=True)
+            t.start()
+            self._threads.append(t)
+        log.info("zenoh %s listening on %s, connecting to %s", self.settings.zenoh_mode,
+                 self.settings.zenoh_listen, self.settings.zenoh_connect)
+
+    def stop(self) -> None:
+        with self._cond:
+            self._stopping = True
+            self._cond.notify_all()
+        self._queries.put(None)
+        self._outbox.put(None)
+        for t in self._threads:
+            t.join(5.0)
+        for entity in (self._queryable, self._subscriber):
+            if entity is not None:
+                try:
+                    entity.undeclare()
+                except Exception:  # the session may already be closing; nothing to recover
+                    log.debug("undeclare failed", exc_info=True)
+        if self.session is not None:
+            self.session.close()
+
+    # --- callbacks: enqueue only ------------------------------------------------------------------------------------
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        self._queries.put((query, time.perf_counter()))
+
+    def _on_frame(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        site_id, rest = _site_of(key, 2)
+        if len(rest) != 2:
+            return
+        device_key = (site_id, rest[1])
+        payload = sample.payload.to_bytes()
+        with self._cond:
+            device = self._devices.get(device_key)
+            if device is None:
+                device = self._devices[device_key] = _Device(site_id, rest[1])
+            if len(device.frames) >= self.settings.stream_queue_per_device:
+                device.frames.popleft()  # the device outruns the pool: the oldest frame is the least useful
+                self.service.metrics.zenoh_dropped.labels(site_id).inc()
+            device.frames.append((payload, time.perf_counter()))
+            self._cond.notify()
+
+    # --- queries ----------------------------------------------------------------------------------------------------
+
+    def _drain_queries(self) -> None:
+        while True:
+            item = self._queries.get()
+            if item is None:
+                return
+            query, t0 = item
+            request_id = uuid.uuid4().hex
+            key = str(query.key_expr)
+            site_id, _ = _site_of(key, 0)
+            try:
+                if query.payload is None:
+                    raise InvalidFrame("the query carries no payload (expected a frame envelope)")
+                parts, meta = unpack_envelope(query.payload.to_bytes())
+                future = self.service.submit(site_id, parts, meta)
+            except Exception as exc:
+                self._reply_error(query, exc, request_id, site_id, t0)
+                continue
+            future.add_done_callback(
+                lambda f, q=query, rid=request_id, s=site_id, t=t0: self._outbox.put(
+                    lambda: self._reply_done(q, f, rid, s, t)))
+
+    def _reply_done(self, query: zenoh.Query, future, request_id: str, site_id: str, t0: float) -> None:
+        try:
+            job = future.result()
+        except Exception as exc:
+            self._reply_error(query, exc, request_id, site_id, t0)
+            return
+        body = self.service.finish(job, site_id, request_id)
+        try:
+            query.reply(query.key_expr, encode_result(body), encoding=RESULT_ENCODING)
+        finally:
+            query.drop()
+        self._log("query", request_id, site_id, "ok", t0)
+
+    def _reply_error(self, query: zenoh.Query, exc: BaseException, request_id: str, site_id: str, t0: float) -> None:
+        if not isinstance(exc, CadregError):
+            log.error("zenoh query %s failed", request_id, exc_info=exc)
+        body = error_body(exc, request_id)
+        try:
+            query.reply_err(encode_result(body), encoding=ERROR_ENCODING)
+        finally:
+            query.drop()
+        self._log("query", request_id, site_id, body["code"], t0)
+
+    def _log(self, route: str, request_id: str, site_id: str, code: str, t0: float) -> None:
+        elapsed = time.perf_counter() - t0
+        self.service.metrics.observe_request("zenoh", route, code, elapsed)
+        if self.settings.log_requests:
+            log.info("request_id=%s zenoh %s site=%s code=%s ms=%.1f", request_id, route, site_id, code, elapsed * 1e3)
+
+    def _drain_outbox(self) -> None:
+        while True:
+            task = self._outbox.get()
+            if task is None:
+                return
+            try:
+                task()
+            except Exception:  # a reply to a vanished peer must not stop the thread
+                log.exception("zenoh reply failed")
+
+    # --- streams ----------------------------------------------------------------------------------------------------
+
+    def _next_frame(self) -> tuple[_Device, bytes, float] | None:
+        """The oldest pending frame of a device with nothing in flight (round robin by dict order), or None."""
+        for device in self._devices.values():
+            if device.frames and not device.in_flight:
+                payload, t0 = device.frames.popleft()
+                device.in_flight = True
+                return device, payload, t0
+        return None
+
+    def _drain_streams(self) -> None:
+        while True:
+            with self._cond:
+                item = None
+                while not self._stopping and (item := self._next_frame()) is None:
+                    self._cond.wait()
+                if self._stopping:
+                    return
+                # rotate so that one busy device cannot starve the others
+                device = item[0]
+                self._devices.pop((device.site_id, device.device_id))
+                self._devices[(device.site_id, device.device_id)] = device
+            self._submit_stream(*item)
+
+    def _submit_stream(self, device: _Device, payload: bytes, t0: float) -> None:
+        request_id = uuid.uuid4().hex
+        frame_id = None
+        try:
+            parts, meta = unpack_envelope(payload)
+            frame_id = meta.frame_id
+            future = self.service.submit(device.site_id, parts, meta)
+        except Overloaded:
+            # the pool is full: put the frame back (newer frames may push it out) and let the pool drain
+            with self._cond:
+                device.in_flight = False
+                if len(device.frames) < self.settings.stream_queue_per_device:
+                    device.frames.appendleft((payload, t0))
+                else:
+                    self.service.metrics.zenoh_dropped.labels(device.site_id).inc()
+                self._cond.wait(_OVERLOAD_RETRY_S)
+            return
+        except Exception as exc:
+            self._outbox.put(lambda: self._publish_error(device, exc, request_id, frame_id, t0))
+            return
+        future.add_done_callback(
+            lambda f: self._outbox.put(lambda: self._publish_done(device, f, request_id, frame_id, t0)))
+
+    def _release(self, device: _Device) -> None:
+        with self._cond:
+            device.in_flight = False
+            self._cond.notify()
+
+    def _publish_done(self, device: _Device, future, request_id: str, frame_id: str | None, t0: float) -> None:
+        try:
+            job = future.result()
+        except Exception as exc:
+            self._publish_error(device, exc, request_id, frame_id, t0)
+            return
+        try:
+            body = self.service.finish(job, device.site_id, request_id)
+            body["frame_id"] = frame_id  # echoed, whatever the result says
+            body["device_id"] = device.device_id
+            self.session.put(f"cadreg/{device.site_id}/poses/{device.device_id}", encode_result(body),
+                             encoding=RESULT_ENCODING)
+            self._log("stream", request_id, device.site_id, "ok", t0)
+        finally:
+            self._release(device)
+
+    def _publish_error(self, device: _Device, exc: BaseException, request_id: str, frame_id: str | None,
+                       t0: float) -> None:
+        try:
+            body = error_body(exc, request_id)
+            body["detail"]["frame_id"] = frame_id
+            body["detail"]["device_id"] = device.device_id
+            self.session.put(f"cadreg/{device.site_id}/poses/{device.device_id}", encode_result(body),
+                             encoding=ERROR_ENCODING)
+            self._log("stream", request_id, device.site_id, body["code"], t0)
+        finally:
+            self._release(device)

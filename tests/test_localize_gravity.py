@@ -1,0 +1,70 @@
+"""Up direction and floor: from floor labels, from the client, from flat surfaces; the map's floor height."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from cadreg.localize.gravity import estimate_floor, estimate_up_from_normals, fit_plane, map_floor_height
+
+
+def _room_points(rng, R_camera_map, t_camera_map):
+    """Floor z = 0 (label 2), a wall x = 2 (label 1) and a table top z = 0.7 (label 7), in the camera frame."""
+    floor = np.column_stack([rng.uniform(-1, 2, 3000), rng.uniform(-1, 2, 3000), np.zeros(3000)])
+    wall = np.column_stack([np.full(1500, 2.0), rng.uniform(-1, 2, 1500), rng.uniform(0, 2, 1500)])
+    table = np.column_stack([rng.uniform(0, 0.8, 800), rng.uniform(0, 0.8, 800), np.full(800, 0.7)])
+    P = np.vstack([floor, wall, table]) + rng.normal(0, 0.002, (5300, 3))
+    labels = np.concatenate([np.full(3000, 2), np.full(1500, 1), np.full(800, 7)])
+    return P @ R_camera_map.T + t_camera_map, labels
+
+
+def _camera(pitch_deg: float, roll_deg: float = 0.0, height: float = 1.5):
+    # map z up; camera looks along +y pitched down, OpenCV axes (x right, y down, z forward)
+    R_map_camera0 = np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], float)  # level camera looking along +y
+    R = Rotation.from_euler("x", -pitch_deg, degrees=True).as_matrix() @ R_map_camera0
+    R = R @ Rotation.from_euler("z", roll_deg, degrees=True).as_matrix()
+    t = np.array([0.5, -1.5, height])
+    return R, t
+
+
+def test_floor_plane_gives_up_and_height() -> None:
+    rng = np.random.default_rng(0)
+    R, t = _camera(30)
+    P, labels = _room_points(rng, R.T, -R.T @ t)
+    fl = estimate_floor(P, labels, "nyu40")
+    assert fl is not None and fl.source == "floor"
+    assert np.degrees(np.arccos(fl.up_camera @ (R.T @ [0, 0, 1]))) < 0.5
+    assert abs(fl.height_m - 1.5) < 0.01
+
+
+def test_client_gravity_and_disagreeing_floor() -> None:
+    rng = np.random.default_rng(1)
+    R, t = _camera(30)
+    P, labels = _room_points(rng, R.T, -R.T @ t)
+    g = -(R.T @ [0, 0, 1])
+    assert estimate_floor(P, np.full(len(P), -1), "nyu40", gravity_camera=g).source == "client"
+    # a client gravity 40° off the floor's normal: the floor is not trusted, the client's vector is kept
+    g_bad = Rotation.from_euler("x", 40, degrees=True).as_matrix() @ g
+    fl = estimate_floor(P, labels, "nyu40", gravity_camera=g_bad)
+    assert fl.source == "client" and fl.height_m is None
+
+
+def test_up_from_surfaces_without_labels() -> None:
+    rng = np.random.default_rng(2)
+    R, t = _camera(35, roll_deg=8)
+    P, _ = _room_points(rng, R.T, -R.T @ t)
+    fl = estimate_up_from_normals(P)
+    assert fl is not None and fl.source == "surfaces"
+    assert np.degrees(np.arccos(np.clip(fl.up_camera @ (R.T @ [0, 0, 1]), -1, 1))) < 2.0
+    assert estimate_up_from_normals(rng.normal(size=(50, 3))) is None
+
+
+def test_fit_plane_and_map_floor_height() -> None:
+    rng = np.random.default_rng(3)
+    pts = np.column_stack([rng.uniform(0, 1, 500), rng.uniform(0, 1, 500), 0.3 + rng.normal(0, 0.001, 500)])
+    outliers = rng.uniform(0, 1, (100, 3))
+    n, c, inl = fit_plane(np.vstack([pts, outliers]))
+    assert abs(abs(n[2]) - 1) < 1e-3 and abs(abs(c) - 0.3) < 2e-3 and inl[:500].mean() > 0.95
+    normals = np.tile([0, 0, 1.0], (600, 1))
+    h = map_floor_height(np.vstack([pts, outliers + [0, 0, 1]]), normals, np.array([0, 0, 1.0]))
+    assert abs(h - 0.3) < 0.02

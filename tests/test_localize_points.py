@@ -1,0 +1,88 @@
+"""Frame -> points (paper eq. 1–2): back-projection, depth -> colour transfer, colour and label look-up."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cadreg.camera import CameraIntrinsics
+from cadreg.errors import InvalidFrame
+from cadreg.frame import Frame
+from cadreg.geometry import make_T
+from cadreg.localize.points import frame_to_points, voxel_downsample, voxel_indices
+
+
+def _plane_frame(depth_m: float = 2.0, *, color_size=(64, 48), T_color_depth=None) -> Frame:
+    Kd = CameraIntrinsics(32, 24, 30.0, 30.0, 15.5, 11.5)
+    Kc = Kd.scaled_to(*color_size)
+    depth = np.full((24, 32), int(depth_m * 1000), dtype=np.uint16)
+    color = np.zeros((color_size[1], color_size[0], 3), dtype=np.uint8)
+    color[:, : color_size[0] // 2] = (255, 0, 0)  # left half red
+    color[:, color_size[0] // 2:] = (0, 0, 255)  # right half blue
+    labels = np.zeros(color.shape[:2], dtype=np.uint16)
+    labels[:, color_size[0] // 2:] = 5
+    return Frame(depth=depth, color=color, labels=labels, depth_intrinsics=Kd, color_intrinsics=Kc,
+                 T_color_depth=np.eye(4) if T_color_depth is None else T_color_depth)
+
+
+def test_back_projection_follows_eq_1_2() -> None:
+    f = _plane_frame(2.0, color_size=(32, 24))
+    p = frame_to_points(f, pixel_stride=1)
+    assert len(p) == 32 * 24
+    assert np.allclose(p.xyz[:, 2], 2.0)
+    # pixel (0, 0): X = (0 - cx) Z / fx
+    assert np.allclose(p.xyz[0], [(0 - 15.5) * 2.0 / 30.0, (0 - 11.5) * 2.0 / 30.0, 2.0])
+    # the principal point's neighbours are symmetric about the optical axis
+    assert abs(p.xyz[:, 0].mean()) < 1e-9
+
+
+def test_colour_and_label_read_in_a_larger_colour_image() -> None:
+    f = _plane_frame(2.0, color_size=(64, 48))
+    p = frame_to_points(f, pixel_stride=1)
+    left = p.xyz[:, 0] < -0.05
+    right = p.xyz[:, 0] > 0.05
+    assert np.allclose(p.rgb[left], [1, 0, 0]) and np.allclose(p.rgb[right], [0, 0, 1])
+    assert np.all(p.labels[left] == 0) and np.all(p.labels[right] == 5)
+
+
+def test_depth_to_colour_extrinsic_moves_points() -> None:
+    T = make_T(t=[-0.1, 0.0, 0.0])
+    f = _plane_frame(2.0, color_size=(32, 24), T_color_depth=T)
+    p0 = frame_to_points(_plane_frame(2.0, color_size=(32, 24)), pixel_stride=1)
+    p1 = frame_to_points(f, pixel_stride=1)
+    # Points are in the colour camera: shifted by -0.1 m in x; those leaving the colour image are dropped.
+    assert len(p1) < len(p0)
+    assert np.isclose(p1.xyz[:, 0].max(), p0.xyz[:, 0].max() - 0.1)
+    assert np.all(np.isin(np.round(p1.xyz[:, 0] + 0.1, 6), np.round(p0.xyz[:, 0], 6)))
+
+
+def test_stride_depth_range_and_missing_labels() -> None:
+    f = _plane_frame(2.0, color_size=(32, 24))
+    f.labels = None
+    assert len(frame_to_points(f, pixel_stride=2)) == 16 * 12
+    assert len(frame_to_points(f, max_depth_m=1.5)) == 0
+    assert np.all(frame_to_points(f).labels == -1)
+
+
+def test_voxel_downsample_keeps_one_point_per_voxel() -> None:
+    rng = np.random.default_rng(0)
+    xyz = rng.uniform(0, 1, size=(5000, 3))
+    idx = voxel_indices(xyz, 0.25)
+    assert len(idx) == 64
+    keys = np.floor(xyz[idx] / 0.25)
+    assert len(np.unique(keys, axis=0)) == 64
+    f = _plane_frame(2.0, color_size=(32, 24))
+    d = voxel_downsample(frame_to_points(f, pixel_stride=1), 0.5)
+    assert 0 < len(d) < 32 * 24 and d.rgb.shape == (len(d), 3)
+
+
+def test_bad_frames_raise_invalid_frame() -> None:
+    Kd = CameraIntrinsics(32, 24, 30.0, 30.0, 15.5, 11.5)
+    good = dict(depth=np.ones((24, 32), np.uint16), color=np.zeros((24, 32, 3), np.uint8), depth_intrinsics=Kd,
+                color_intrinsics=Kd)
+    with pytest.raises(InvalidFrame):
+        Frame(**{**good, "depth": np.ones((24, 32), np.float32)})
+    with pytest.raises(InvalidFrame):
+        Frame(**{**good, "depth": np.zeros((24, 32), np.uint16)})
+    with pytest.raises(InvalidFrame):
+        Frame(**{**good, "color": np.zeros((10, 32, 3), np.uint8)})

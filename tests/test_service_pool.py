@@ -1,0 +1,119 @@
+"""The worker pool on its own: workers that cannot load their sites, a failed reload, per-job deadlines, cancelled
+jobs. (Kills, timeouts and overload through HTTP are in test_service_http.py.)"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import time
+from pathlib import Path
+
+import pytest
+
+from cadreg.errors import InvalidFileError, RequestTimeout, UnknownSite
+from service import codec
+from service.pool import JobResult, WorkerPool
+from service.worker import SLEEP_HOOK_PREFIX
+from test_service_support import load_frames, render_frames
+
+
+def test_workers_that_cannot_start_never_leave_a_request_hanging(tmp_path) -> None:
+    pool = WorkerPool({"ghost": str(tmp_path / "missing")}, workers=1, queue_depth=2, timeout_s=1.5)
+    pool.start()
+    try:
+        deadline = time.monotonic() + 60
+        while pool.start_error is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert pool.start_error is not None and pool.start_error["code"] == "invalid_file"
+        assert "missing" in pool.start_error["message"]
+        assert not pool.ready and pool.restarts["start_failed"] >= 1
+        t0 = time.monotonic()
+        future = pool.submit("ghost", None, {"color": b"x", "depth": b"y"}, "{}")
+        with pytest.raises(RequestTimeout):
+            future.result(timeout=10)
+        assert time.monotonic() - t0 < 3.0
+    finally:
+        pool.stop()
+
+
+@pytest.fixture(scope="module")
+def pool(scene0470_site_dir: Path):
+    p = WorkerPool({"scene0470": str(scene0470_site_dir)}, workers=1, queue_depth=2, timeout_s=30, test_hooks=True)
+    p.start()
+    assert p.wait_ready(180)
+    yield p
+    p.stop()
+
+
+@pytest.fixture(scope="module")
+def envelope(scene0470_site_dir: Path, tmp_path_factory):
+    frame, _ = load_frames(render_frames(scene0470_site_dir, tmp_path_factory.mktemp("pframes"), n=1))[0]
+    parts, meta = codec.encode_frame_parts(frame)
+    return parts, meta
+
+
+def test_a_job_gives_a_result_with_its_version_and_timings(pool, envelope, scene0470_site_dir) -> None:
+    parts, meta = envelope
+    job = pool.submit("scene0470", None, parts, meta.model_dump_json()).result(timeout=60)
+    assert isinstance(job, JobResult) and job.result["status"] in ("ok", "ambiguous")
+    assert job.site_version == codec.decode_result((scene0470_site_dir / "site.json").read_bytes())["version"]
+    assert job.run_ms > 0 and job.queue_ms >= 0 and job.worker_pid == pool.workers_info()[0]["pid"]
+
+
+def test_worker_errors_come_back_typed_and_the_worker_lives_on(pool, envelope) -> None:
+    parts, meta = envelope
+    with pytest.raises(UnknownSite):
+        pool.submit("elsewhere", None, parts, meta.model_dump_json()).result(timeout=60)
+    bad = dict(parts, depth=b"\x89PNG broken")
+    with pytest.raises(Exception) as info:
+        pool.submit("scene0470", None, bad, meta.model_dump_json()).result(timeout=60)
+    assert info.value.code == "invalid_frame"
+    assert pool.restarts == {} and pool.submit("scene0470", None, parts, meta.model_dump_json()).result(60)
+
+
+def test_failed_reload_keeps_serving_the_old_version(pool, envelope, tmp_path, scene0470_site_dir) -> None:
+    with pytest.raises(InvalidFileError):
+        pool.load_site("scene0470", str(tmp_path / "nothing-here")).result(timeout=60)
+    parts, meta = envelope
+    assert pool.submit("scene0470", None, parts, meta.model_dump_json()).result(60).result["status"] in ("ok", "ambiguous")
+    # a replacement worker would still load the good bundle
+    assert pool.site_paths() == {"scene0470": str(scene0470_site_dir)}
+
+
+def test_a_worker_replaced_during_a_reload_loads_the_new_version(pool, envelope, scene0470_site_dir, tmp_path) -> None:
+    from cadreg.site.bundle import Site
+
+    site = Site.load(scene0470_site_dir)
+    site.colors = site.colors.copy()
+    site.colors[1] = 255 - site.colors[1]
+    second = tmp_path / "scene0470"
+    site.save(second)
+    parts, meta = envelope
+    # the worker is busy when the reload arrives, and dies before it can run it
+    sleeper = meta.model_copy(update={"frame_id": f"{SLEEP_HOOK_PREFIX}30"})
+    busy = pool.submit("scene0470", None, parts, sleeper.model_dump_json())
+    while pool.workers_info()[0]["state"] != "busy":
+        time.sleep(0.01)
+    loaded = pool.load_site("scene0470", str(second))
+    pool.kill_worker(0)
+    with pytest.raises(Exception) as info:
+        busy.result(timeout=30)
+    assert info.value.code == "worker_crashed"
+    loaded.result(timeout=120)
+    assert pool.site_paths() == {"scene0470": str(second)}
+    job = pool.submit("scene0470", site.version, parts, meta.model_dump_json()).result(60)
+    assert job.site_version == site.version
+    pool.load_site("scene0470", str(scene0470_site_dir)).result(timeout=120)
+
+
+def test_a_cancelled_queued_job_is_skipped(pool, envelope) -> None:
+    parts, meta = envelope
+    sleeper = meta.model_copy(update={"frame_id": f"{SLEEP_HOOK_PREFIX}1.0"})
+    first = pool.submit("scene0470", None, parts, sleeper.model_dump_json())
+    second = pool.submit("scene0470", None, parts, meta.model_dump_json())
+    assert second.cancel()  # still queued behind the sleeper: the client went away
+    third = pool.submit("scene0470", None, parts, meta.model_dump_json())
+    assert first.result(60).result["frame_id"] == sleeper.frame_id
+    assert third.result(60).result["status"] in ("ok", "ambiguous")
+    assert second.cancelled()
+    with pytest.raises(concurrent.futures.CancelledError):
+        second.result()

@@ -1,0 +1,145 @@
+"""Site bundle: exact round trip, content versions, integrity checks, label lookup; a site from labelled points."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from cadreg.errors import BundleIntegrityError, InvalidFileError
+from cadreg.site.build import site_from_labelled_points
+from cadreg.site.bundle import DATA_FILES, Site
+
+ARRAYS = ("points", "colors", "normals", "instance", "class_index", "source",
+          "raw_points", "raw_colors", "raw_normals", "raw_class_index")
+
+
+def labelled_room(seed: int = 0):
+    """A 3 × 2 m floor (NYU40 2) with a chair-like blob (5) and a door-like panel (8); colours per part."""
+    rng = np.random.default_rng(seed)
+    g = np.arange(0.0, 3.0, 0.03)
+    fx, fy = np.meshgrid(g, g[g < 2.0])
+    floor = np.stack([fx.ravel(), fy.ravel(), np.zeros(fx.size)], axis=1)
+    cx, cy, cz = np.meshgrid(np.linspace(0.5, 1.0, 11), np.linspace(0.5, 1.0, 11), np.linspace(0.0, 0.9, 19))
+    chair = np.stack([cx.ravel(), cy.ravel(), cz.ravel()], axis=1) + rng.normal(scale=0.003, size=(cx.size, 3))
+    dy, dz = np.meshgrid(np.linspace(0.8, 1.7, 31), np.linspace(0.0, 2.0, 67))
+    door = np.stack([np.full(dy.size, 2.9), dy.ravel(), dz.ravel()], axis=1)
+    pts = np.vstack([floor, chair, door])
+    labels = np.concatenate([np.full(len(floor), 2), np.full(len(chair), 5), np.full(len(door), 8)])
+    colors = np.zeros((len(pts), 3), np.uint8)
+    colors[labels == 2] = (120, 120, 120)
+    colors[labels == 5] = (200, 30, 30)
+    colors[labels == 8] = (150, 100, 50)
+    return pts.astype(np.float32), colors, labels
+
+
+@pytest.fixture(scope="module")
+def small_site() -> Site:
+    pts, colors, labels = labelled_room()
+    return site_from_labelled_points(pts, colors, None, labels, site_id="room", inputs={"kind": "synthetic"})
+
+
+def test_site_from_labelled_points_finds_the_objects(small_site):
+    s = small_site
+    by_cls = {n.cls: n for n in s.graph.nodes}
+    assert sorted(by_cls) == ["chair", "door"] and all(n.source == "cluster" for n in s.graph.nodes)
+    np.testing.assert_allclose(by_cls["chair"].centroid, [0.75, 0.75, 0.45], atol=0.03)
+    np.testing.assert_allclose(by_cls["door"].centroid, [2.9, 1.25, 1.0], atol=0.03)
+    assert s.graph.graph.number_of_edges() == 0  # 2.2 m apart > δ
+    assert len(s.points) == len(s.raw_points) and np.all(s.source == 0)
+    # points of a node carry its instance id; floor points carry none
+    for i, n in enumerate(s.graph.nodes):
+        assert (s.instance == i).sum() == n.points
+    assert np.all(s.class_index[(s.points[:, 2] == 0) & (s.points[:, 0] < 0.45)] == -1)
+    np.testing.assert_allclose(np.linalg.norm(s.normals, axis=1), 1.0, atol=1e-5)
+
+
+def test_round_trip_is_bit_exact(small_site, tmp_path):
+    small_site.save(tmp_path / "b")
+    loaded = Site.load(tmp_path / "b")
+    for name in ARRAYS:
+        a, b = getattr(small_site, name), getattr(loaded, name)
+        assert a.dtype == b.dtype and a.shape == b.shape, name
+        assert a.tobytes() == b.tobytes(), name
+    assert loaded.site_id == "room" and loaded.version == small_site.version and len(loaded.version) == 12
+    assert loaded.graph.to_dict() == small_site.graph.to_dict()
+    assert loaded.classes == small_site.classes and loaded.label_maps == small_site.label_maps
+    meta = json.loads((tmp_path / "b" / "site.json").read_text())
+    assert set(meta["files"]) == set(DATA_FILES) and meta["inputs"] == {"kind": "synthetic"}
+    assert meta["build_config"]["graph"]["edge_max_m"] == 1.5 and meta["schema"] == "cadreg.site/1"
+    # saving the loaded site again gives the same bytes for every data file
+    loaded.save(tmp_path / "c")
+    for name in DATA_FILES:
+        assert (tmp_path / "b" / name).read_bytes() == (tmp_path / "c" / name).read_bytes()
+
+
+def test_version_follows_content(small_site):
+    pts, colors, labels = labelled_room()
+    again = site_from_labelled_points(pts, colors, None, labels, site_id="room", inputs={})
+    assert again.version == small_site.version  # same content, same version (build time is not content)
+    # an unsaved site already describes itself as its site.json will
+    assert set(again.meta["files"]) == set(DATA_FILES) and again.meta["version"] == again.version
+    assert again.meta["schema"] == "cadreg.site/1" and again.meta["counts"]["nodes"] == 2
+    colors2 = colors.copy()
+    colors2[0] = (1, 2, 3)
+    other = site_from_labelled_points(pts, colors2, None, labels, site_id="room", inputs={})
+    assert other.version != small_site.version
+
+
+def test_modified_file_is_refused_naming_it(small_site, tmp_path):
+    small_site.save(tmp_path / "b")
+    for name in DATA_FILES:
+        d = tmp_path / name
+        shutil.copytree(tmp_path / "b", d)
+        blob = bytearray((d / name).read_bytes())
+        blob[-1] ^= 0x01
+        (d / name).write_bytes(bytes(blob))
+        with pytest.raises(BundleIntegrityError, match=rf"{name}: sha256 does not match"):
+            Site.load(d)
+    d = tmp_path / "version"
+    shutil.copytree(tmp_path / "b", d)
+    meta = json.loads((d / "site.json").read_text())
+    meta["version"] = "000000000000"
+    (d / "site.json").write_text(json.dumps(meta))
+    with pytest.raises(BundleIntegrityError, match="site.json.*version"):
+        Site.load(d)
+
+
+def test_missing_or_malformed_bundle_files(small_site, tmp_path):
+    small_site.save(tmp_path / "b")
+    d = tmp_path / "missing"
+    shutil.copytree(tmp_path / "b", d)
+    (d / "raw.ply").unlink()
+    with pytest.raises(InvalidFileError, match="raw.ply: cannot read"):
+        Site.load(d)
+    with pytest.raises(InvalidFileError, match="site.json: cannot read"):
+        Site.load(tmp_path / "nowhere")
+    d = tmp_path / "badjson"
+    shutil.copytree(tmp_path / "b", d)
+    (d / "site.json").write_text("{")
+    with pytest.raises(InvalidFileError, match="site.json: not valid JSON"):
+        Site.load(d)
+    (d / "site.json").write_text(json.dumps({"schema": "something/else"}))
+    with pytest.raises(InvalidFileError, match="not a cadreg site"):
+        Site.load(d)
+
+
+def test_classes_for_labels(small_site):
+    s = small_site
+    idx = s.classes_for_labels("nyu40", np.array([[5, 2], [8, 39]], dtype=np.uint16))
+    assert [[s.class_name(int(i)) for i in row] for row in idx] == [["chair", None], ["door", "otherfurniture"]]
+    assert s.class_name(int(s.classes_for_labels("shapenet", np.array([2747177]))[0])) == "otherfurniture"
+    with pytest.raises(KeyError, match="no label map"):
+        s.classes_for_labels("ade20k", np.array([1]))
+
+
+def test_bad_inputs_to_site_from_labelled_points():
+    pts, colors, labels = labelled_room()
+    with pytest.raises(ValueError, match="colors"):
+        site_from_labelled_points(pts, colors[:-1], None, labels, site_id="x", inputs={})
+    with pytest.raises(ValueError, match="labels"):
+        site_from_labelled_points(pts, colors, None, labels[:-1], site_id="x", inputs={})
+    unlabelled = site_from_labelled_points(pts, colors, None, None, site_id="x", inputs={})
+    assert unlabelled.graph.nodes == [] and np.all(unlabelled.class_index == -1)
