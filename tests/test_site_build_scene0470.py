@@ -63,6 +63,11 @@ def test_cad_points_sit_on_the_scanned_mesh(site, scan):
         assert mine.sum() == node.points > 5000  # dense: ~1 cm spacing on surfaces of 0.5–5 m²
         d = scene.compute_distance(o3d.core.Tensor(site.points[mine])).numpy()
         assert np.median(d) <= 0.07, (node.id, float(np.median(d)))
+    # the build records the same check against the raw points (an upper bound of the surface distance)
+    fits = {f["id"]: f for f in site.meta["enhance"]["cads"]}
+    assert sorted(fits) == sorted(n.id for n in site.graph.nodes if n.source == "cad")
+    for f in fits.values():
+        assert 0 < f["median_distance_to_scan_m"] <= 0.07 and f["raw_points_replaced"] > 100, f
 
 
 def test_cad_colours_come_from_the_scan(site, scan):

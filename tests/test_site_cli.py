@@ -22,12 +22,14 @@ def test_info_json_has_the_documented_keys(scene0470_site_dir, capsys):
         assert {"id", "class", "centroid", "source"} <= set(node)
         assert node["source"] in ("cad", "cluster") and len(node["centroid"]) == 3
     assert sum(n["source"] == "cad" for n in info["nodes"]) == 7
+    assert len(info["cad_fit"]) == 7 and all(f["median_distance_to_scan_m"] <= 0.07 for f in info["cad_fit"])
 
 
 def test_info_text_and_show_png(scene0470_site_dir, tmp_path, capsys):
     assert main(["site", "info", str(scene0470_site_dir)]) == 0
     out = capsys.readouterr().out
     assert "scene0470" in out and "cad-0" in out and "otherfurniture" in out
+    assert "CAD samples to scan" in out
     png = tmp_path / "pics" / "site.png"
     assert main(["site", "show", str(scene0470_site_dir), "--png", str(png)]) == 0
     data = png.read_bytes()

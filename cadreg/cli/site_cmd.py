@@ -51,6 +51,7 @@ def site_summary(site) -> dict:
         "classes": list(site.classes),
         "label_sets": sorted(site.label_maps),
         "built_at": site.meta.get("built_at"),
+        "cad_fit": list(site.meta.get("enhance", {}).get("cads", [])),
     }
 
 
@@ -68,6 +69,11 @@ def _info(args: argparse.Namespace) -> int:
     for n in info["nodes"]:
         c = n["centroid"]
         print(f"{n['id']:<12} {n['class']:<16} {n['source']:<8} {n['points']:>7}  ({c[0]:.2f}, {c[1]:.2f}, {c[2]:.2f})")
+    if info["cad_fit"]:
+        print(f"{'CAD fit':<12} {'model':<44} {'replaced':>8}  CAD samples to scan: median / p90 [cm]")
+        for f in info["cad_fit"]:
+            print(f"{f['id']:<12} {f['cad_id']:<44} {f['raw_points_replaced']:>8}  "
+                  f"{100 * f['median_distance_to_scan_m']:.1f} / {100 * f['p90_distance_to_scan_m']:.1f}")
     return 0
 
 

@@ -125,7 +125,8 @@ def _assemble(
         "inputs": inputs,
         "label_set": label_set,
         "build_config": config.model_dump(mode="json"),
-        "enhance": {"cad_models": len(placements), "raw_points_replaced": enhanced.removed_raw},
+        "enhance": {"cad_models": len(placements), "raw_points_replaced": enhanced.removed_raw,
+                    "cads": enhanced.cad_fit},
     }
     site = Site(
         site_id=site_id, version="", meta=meta,

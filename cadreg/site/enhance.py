@@ -69,6 +69,7 @@ class EnhancedMap:
     map: PointSet
     cad_nodes: list[ObjectNode]
     removed_raw: int
+    cad_fit: list[dict]  # per CAD: node id, raw points replaced, median/p90 distance of its samples to the raw scan
 
 
 def sample_cad_surface(mesh_scan, spacing_m: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -125,6 +126,11 @@ def enhance_map(
     remove = np.zeros(len(raw), dtype=bool)
     parts: list[PointSet] = []
     nodes: list[ObjectNode] = []
+    fits: list[dict] = []
+    # How far each CAD's surface lies from the scan says how good the alignment is (a wrong model or pose shows up
+    # here, not only later as failed registrations). Distances to raw points, not to the scan's faces: a slight
+    # over-estimate of the point-to-surface distance at the raw voxel spacing.
+    raw_tree = cKDTree(raw.points) if len(raw) else None
     for i, pl in enumerate(placements):
         mesh = pl.mesh.copy()
         mesh.apply_transform(pl.A_scan_cad)
@@ -147,6 +153,10 @@ def enhance_map(
             pts.astype(np.float32), colors, nrm.astype(np.float32),
             np.full(n, i, np.int32), np.full(n, cls_i, np.int16), np.full(n, SOURCE_CAD, np.uint8),
         ))
+        d = raw_tree.query(pts)[0] if raw_tree is not None else np.full(n, np.inf)
+        fits.append({"id": f"cad-{i}", "cad_id": pl.cad_id, "raw_points_replaced": int(inside.sum()),
+                     "median_distance_to_scan_m": round(float(np.median(d)), 4),
+                     "p90_distance_to_scan_m": round(float(np.percentile(d, 90)), 4)})
         nodes.append(ObjectNode(
             id=f"cad-{i}", cls=pl.cls, centroid=aabb_center(mesh.vertices), box_center=center, box_extent=extent,
             box_R=R, source="cad", cad_id=pl.cad_id, points=n,
@@ -154,4 +164,4 @@ def enhance_map(
         if progress is not None:
             progress(i + 1, len(placements))
     kept = raw.take(np.flatnonzero(~remove))
-    return EnhancedMap(PointSet.concat([kept, *parts]), nodes, int(remove.sum()))
+    return EnhancedMap(PointSet.concat([kept, *parts]), nodes, int(remove.sum()), fits)
