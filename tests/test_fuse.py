@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -12,26 +13,14 @@ from cadreg.cli.main import main
 from cadreg.cli.render_cmd import parse_range
 from cadreg.config import FuseConfig, RenderConfig
 from cadreg.errors import ConfigError
-from cadreg.geometry import transform_points
 from cadreg.io.frames import FramesWriter, RecordedFrames
 from cadreg.render import LabelledMesh, render_frames
 from cadreg.site.bundle import Site
-from cadreg.site.fuse import color_in_depth_camera, fuse_frames
-
-
-def frame_points_map(frames: RecordedFrames, i: int) -> np.ndarray:
-    """Valid depth of frame i back-projected and moved into the map with its ground-truth pose."""
-    frame, T_map_camera = frames.load(i)
-    K = frame.depth_intrinsics
-    z = frame.depth.astype(np.float64) / frame.depth_scale
-    v, u = np.nonzero(z > 0)
-    p = np.stack([(u - K.cx) / K.fx * z[v, u], (v - K.cy) / K.fy * z[v, u], z[v, u]], axis=1)
-    return transform_points(T_map_camera @ frames.T_color_depth, p)
+from cadreg.site.fuse import color_in_depth_camera, fuse_frames, map_accuracy
 
 
 def median_distance_to_map(map_points: np.ndarray, frames: RecordedFrames, indices) -> float:
-    tree = cKDTree(map_points)
-    return float(np.median(np.concatenate([tree.query(frame_points_map(frames, i))[0] for i in indices])))
+    return map_accuracy(map_points, frames, indices)["median_m"]
 
 
 @pytest.mark.realdata
@@ -79,8 +68,11 @@ def test_fused_labels_match_the_mesh(rendered_labelled) -> None:
 def test_cli_site_fuse_with_labels(rendered_labelled, tmp_path: Path, capsys) -> None:
     out, _ = rendered_labelled
     assert main(["site", "fuse", "--frames", str(out), "--range", "0:8", "--out", str(tmp_path / "site"),
-                 "--voxel-m", "0.02", "--site-id", "fused0470"]) == 0
-    assert '"site_id": "fused0470"' in capsys.readouterr().out
+                 "--voxel-m", "0.02", "--site-id", "fused0470", "--check-range", "0:8"]) == 0
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["site_id"] == "fused0470"
+    # the fused frames themselves (random views of a room, no held-out frame sees the same parts) lie on the map
+    assert report["check"]["frames"] == 8 and report["check"]["median_m"] < 0.02
     site = Site.load(tmp_path / "site")
     assert site.site_id == "fused0470" and len(site.points) > 10_000
     classes = {n.cls for n in site.graph.nodes}
@@ -117,8 +109,8 @@ def test_color_registration_and_errors(tmp_path: Path) -> None:
 @pytest.mark.realdata
 def test_redkitchen_map_from_250_frames(redkitchen_dir: Path, tmp_path: Path) -> None:
     """Acceptance: `cadreg site fuse --range 0:250`; frames 250-499 land within 3 cm (median) of the map."""
-    assert main(["site", "fuse", "--frames", str(redkitchen_dir), "--range", "0:250", "--out",
-                 str(tmp_path / "redkitchen")]) == 0
+    assert main(["site", "fuse", "--frames", str(redkitchen_dir), "--range", "0:250", "--check-range", "250:500",
+                 "--out", str(tmp_path / "redkitchen")]) == 0
     site = Site.load(tmp_path / "redkitchen")
     frames = RecordedFrames.open(redkitchen_dir)
     median = median_distance_to_map(site.points, frames, range(250, 500, 5))

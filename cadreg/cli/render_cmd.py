@@ -144,6 +144,9 @@ def register_site_fuse(site_sub: argparse._SubParsersAction) -> None:
     f.add_argument("--site-id", help="site id (default: the frames folder's name)")
     f.add_argument("--voxel-m", type=float, help="TSDF voxel size in metres")
     f.add_argument("--depth-max-m", type=float, help="depth beyond this is not fused")
+    f.add_argument("--check-range", metavar="A:B",
+                   help="held-out frames to check the map with: median and p90 distance of their depth, at their "
+                        "poses, to the fused map (e.g. 250:500 when fusing 0:250)")
     f.set_defaults(func=_site_fuse)
 
 
@@ -168,10 +171,11 @@ def parse_range(text: str | None, indices: list[int]) -> list[int]:
 def _site_fuse(args: argparse.Namespace) -> int:
     from ..config import FuseConfig
     from ..io.frames import RecordedFrames
-    from ..site.fuse import fuse_site
+    from ..site.fuse import fuse_site, map_accuracy
 
     frames = RecordedFrames.open(args.frames)
     indices = parse_range(args.frame_range, frames.indices)
+    check = parse_range(args.check_range, frames.indices) if args.check_range else []
     overrides = {}
     if args.voxel_m is not None:
         overrides["voxel_size_m"] = args.voxel_m
@@ -188,6 +192,9 @@ def _site_fuse(args: argparse.Namespace) -> int:
 
         site = fuse_site(frames, indices, site_id=site_id, config=config, progress=progress)
     site.save(args.out)
-    print(json.dumps({"site_id": site.site_id, "version": site.version, "frames": len(indices),
-                      "points": int(len(site.points)), "nodes": len(site.graph.nodes), "out": str(args.out)}))
+    report = {"site_id": site.site_id, "version": site.version, "frames": len(indices),
+              "points": int(len(site.points)), "nodes": len(site.graph.nodes), "out": str(args.out)}
+    if check:
+        report["check"] = {"range": args.check_range, **map_accuracy(site.points, frames, check)}
+    print(json.dumps(report))
     return 0
