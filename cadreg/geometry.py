@@ -46,9 +46,22 @@ def R_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(R: np.ndarray) -> float:
-    """Angle of a rotation matrix in degrees, robust to round-off."""
-    c = (np.trace(R) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    """Angle of a rotation matrix in degrees, robust to round-off.
+
+    atan2(sin, cos) rather than arccos of the trace: near 0° arccos turns a matrix that is 5e-5 off orthonormal
+    (7-Scenes stores its poses so) into a 1° "error"; the skew part carries the angle, the trace only its sign.
+    """
+    R = np.asarray(R, dtype=float)
+    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    c = 0.5 * (np.trace(R) - 1.0)
+    return float(np.degrees(np.arctan2(s, c)))
+
+
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation closest to a 3×3 matrix in the Frobenius norm (SVD projection onto SO(3))."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
 
 
 def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:

@@ -46,6 +46,20 @@ def test_summary_figures_are_computed_as_documented() -> None:
     json.dumps(s)
 
 
+def test_ground_truth_diagnostics() -> None:
+    outs = [FrameOutcome(0, "ok", 0.01, 0.5, 1.0, gt_overlap=0.95, gt_fit_1cm=0.6, est_fit_1cm=0.61),
+            FrameOutcome(1, "ok", 0.07, 1.0, 1.0, gt_overlap=0.6, gt_fit_1cm=0.3, est_fit_1cm=0.4),  # GT off
+            FrameOutcome(2, "ok", 0.09, 1.0, 1.0, gt_overlap=0.3, gt_fit_1cm=0.3, est_fit_1cm=0.2),  # estimate off
+            FrameOutcome(3, "no_match", math.inf, math.inf, 1.0, gt_overlap=0.9, gt_fit_1cm=0.5)]
+    s = summarize(outs)
+    assert s["gt_fits_worse"] == 1 and s["gt_fits_worse_frames"] == [1]
+    assert s["by_ground_truth_overlap"] == {"<0.5": {"frames": 1, "success_5cm_5deg": 0.0},
+                                           "0.5-0.8": {"frames": 1, "success_5cm_5deg": 0.0},
+                                           ">=0.8": {"frames": 2, "success_5cm_5deg": 0.5}}
+    assert "better at the estimate than at their ground truth" in format_table({"frames": 4, "skipped": [],
+                                                                                "methods": {"m": s}})
+
+
 def test_perturbation_is_exact_and_seeded() -> None:
     T = np.eye(4)
     a = perturb(T, np.random.default_rng([0, 5]))

@@ -34,7 +34,7 @@ from PIL import Image
 from ..camera import CameraIntrinsics
 from ..errors import InvalidFileError, InvalidFrame
 from ..frame import Frame
-from ..geometry import invert_T
+from ..geometry import invert_T, nearest_rotation
 
 Layout = Literal["scannet", "7scenes"]
 
@@ -278,7 +278,9 @@ class RecordedFrames:
     def pose(self, i: int) -> np.ndarray | None:
         """T_map_camera (colour camera -> map, 4x4 float64) of frame i, None when the folder has no pose for it.
 
-        Poses with non-finite entries (ScanNet marks lost tracking with -inf) are returned as None.
+        Poses with non-finite entries (ScanNet marks lost tracking with -inf) are returned as None. Rotations are
+        projected onto the nearest true rotation: text files round them (7-Scenes' are ~5e-5 off orthonormal),
+        and every rigid-transform helper assumes R⁻¹ = Rᵀ. A matrix that is no rotation at all is refused.
         """
         path = self._entry(i)["pose"]
         if path is None:
@@ -286,6 +288,11 @@ class RecordedFrames:
         T_map_rig = read_matrix(path, finite=False)
         if not np.all(np.isfinite(T_map_rig)):
             return None
+        R = nearest_rotation(T_map_rig[:3, :3])
+        if np.abs(R - T_map_rig[:3, :3]).max() > 1e-2:
+            raise InvalidFileError(path, "pose rotation is not a rotation matrix (off by more than 1e-2)")
+        T_map_rig = T_map_rig.copy()
+        T_map_rig[:3, :3] = R
         return T_map_rig @ self._T_rig_color
 
     def load(self, i: int) -> tuple[Frame, np.ndarray | None]:
