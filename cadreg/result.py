@@ -85,7 +85,7 @@ class Refinement:
 class Diagnostics:
     scan_objects: list[ScanObject] = field(default_factory=list)
     matches: list[Match] = field(default_factory=list)
-    roi: dict[str, Any] | None = None  # {"center": [x, y, z], "radius_m": r, "points": n}
+    roi: dict[str, Any] | None = None  # {"center": [x, y, z], "radius_m": r, "points": map n, "frame_points": n}
     refinement: Refinement | None = None
     stage_ms: dict[str, float] = field(default_factory=dict)
     method: str = "cadreg"  # which path produced the pose: cadreg (graph) | fallback:<name> | prior

@@ -160,14 +160,15 @@ def error_from_body(
     """The typed error for a wire error body `{code, message, request_id, detail}`.
 
     A body that is not such an object gives BadResponse. An unknown code gives a ServerError that keeps the code
-    (a newer service may add codes). Retry-After comes from the argument (HTTP header) or `detail.retry_after_s`.
+    (a newer service may add codes). The wait comes from `detail.retry_after_s` (the service's own estimate, in
+    fractions of a second) or else the argument (the HTTP Retry-After header, whole seconds).
     """
     if not isinstance(body, dict) or not isinstance(body.get("code"), str):
         return BadResponse(f"not an error body: {str(body)[:200]!r}", status=status)
     code = body["code"]
     detail = body.get("detail") if isinstance(body.get("detail"), dict) else {}
-    if retry_after_s is None and "retry_after_s" in detail:
-        retry_after_s = _seconds(detail["retry_after_s"])
+    if "retry_after_s" in detail:
+        retry_after_s = _seconds(detail["retry_after_s"]) if _seconds(detail["retry_after_s"]) is not None else retry_after_s
     cls = ERRORS_BY_CODE.get(code)
     kwargs = dict(
         status=status,

@@ -127,6 +127,7 @@ class WorkerPool:
         self._stopping = False
         self._thread: threading.Thread | None = None
         self._started_once: set[int] = set()
+        self._service_s: float | None = None  # moving average of a job's time on a worker, seconds
         self.restarts: Counter[str] = Counter()  # reason -> count, read by the metrics collector
         self.start_error: dict[str, Any] | None = None
         # Futures are settled after the lock is released: their callbacks may call back into the pool.
@@ -191,7 +192,7 @@ class WorkerPool:
             if len(self._queue) >= self._queue_depth + idle:
                 raise Overloaded(
                     f"all {self._n} workers are busy and {len(self._queue)} requests are waiting",
-                    retry_after_s=self._retry_after_s,
+                    retry_after_s=self._expected_wait_s(),
                     detail={"queue": len(self._queue), "workers": self._n},
                 )
             job_id = next(self._ids)
@@ -350,6 +351,8 @@ class WorkerPool:
         elif kind == "result" and w.job is not None and msg[1] == w.job.job_id:
             job, w.job, w.state = w.job, None, "idle"
             _, _, ok, body, version = msg
+            spent = now - job.dispatched
+            self._service_s = spent if self._service_s is None else 0.8 * self._service_s + 0.2 * spent
             if ok:
                 self._resolve(job.future, JobResult(body, version, w.pid or 0,
                                                (job.dispatched - job.submitted) * 1e3, (now - job.dispatched) * 1e3))
@@ -362,6 +365,15 @@ class WorkerPool:
             control.settle(w.slot, self._outbox)
         else:
             log.error("worker %d sent an unexpected message %r", w.slot, kind)
+
+    def _expected_wait_s(self) -> float:
+        """How long a turned-away request should wait (lock held): until the queue ahead of it has drained, from
+        the recent time per job, at most the configured Retry-After. HTTP's header can only say whole seconds; a
+        second is ten jobs here, so the finer figure travels in the error body and the clients prefer it."""
+        if self._service_s is None:
+            return self._retry_after_s
+        drain_s = (len(self._queue) + 1) * self._service_s / max(self._n, 1)
+        return float(min(self._retry_after_s, max(0.05, round(drain_s, 3))))
 
     def _assign(self, now: float) -> None:
         """Give idle workers their pending controls first, then queued jobs (lock held)."""

@@ -42,7 +42,8 @@ class Settings(BaseSettings):
     queue_depth: int = Field(4, ge=0, le=10_000, description="requests waiting for a worker beyond those running; more -> 503")
     request_timeout_s: float = Field(30.0, gt=0, le=3600, description="deadline from arrival to answer; past it -> 504")
     worker_start_timeout_s: float = Field(600.0, gt=0, description="a worker that has not loaded its sites by then is replaced")
-    retry_after_s: float = Field(1.0, gt=0, le=3600, description="Retry-After sent with 503")
+    retry_after_s: float = Field(1.0, gt=0, le=3600, description="longest wait a 503 asks for; overload answers ask "
+                                 "for the queue's expected drain time (detail.retry_after_s), the header rounds up")
     max_upload_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="largest localize request body")
     max_bundle_bytes: int = Field(2 * 1024 * 1024 * 1024, ge=1024, description="largest site archive uploaded by PUT")
     admin_token: SecretStr | None = Field(None, description="bearer token of the admin routes; None = admin routes refuse")

@@ -54,7 +54,11 @@ def test_invalid_file_keeps_its_path_and_overloaded_its_delay() -> None:
     body = wire.error_body(core.Overloaded("queue full", retry_after_s=2.5))
     got = cerr.error_from_body(body, status=503)
     assert isinstance(got, core.Overloaded) and got.retry_after_s == 2.5
-    # an HTTP Retry-After header wins over the body's hint
+    # the service's own estimate in the body wins over the HTTP header, which rounds it up to whole seconds ...
+    body = wire.error_body(core.Overloaded("queue full", retry_after_s=0.25))
+    assert cerr.error_from_body(body, status=503, retry_after_s=1.0).retry_after_s == 0.25
+    # ... and the header counts when the body has none (a proxy's 503, an older service)
+    body["detail"].pop("retry_after_s")
     assert cerr.error_from_body(body, status=503, retry_after_s=4.0).retry_after_s == 4.0
 
 

@@ -70,8 +70,21 @@ def test_known_poses_are_recovered(scene, localizer) -> None:
         assert d.method == "cadreg" and len(d.scan_objects) >= 2 and d.matches
         assert set(d.stage_ms) >= {"points", "cluster", "gravity", "match", "verify", "refine"}
         assert d.refinement.fitness > 0.9 and d.roi["radius_m"] == 3.0 and d.roi["points"] > 0
+        assert 100 <= d.roi["frame_points"] <= d.frame_points
         json.dumps(r.to_dict())  # JSON-able
     assert exact >= 3
+
+
+def test_the_region_of_interest_bounds_the_refinement(scene) -> None:
+    (f, T), = _views(scene, 1, seed=3)
+    narrow = Localizer.from_site(scene.site, LocalizeConfig(refine=RefineConfig(roi_radius_m=0.6)))
+    r = narrow.localize(f)
+    d = r.diagnostics
+    assert d.roi["radius_m"] == 0.6 and 100 <= d.roi["frame_points"] < 0.9 * d.frame_points
+    # the map side: only map points within γ of the centre count, far fewer than in the whole room
+    assert 0 < d.roi["points"] < len(scene.site.points) / 4
+    te, re_ = pose_errors(r.T_map_camera, T)
+    assert te < 0.05 and re_ < 2.0
 
 
 def test_without_labels_the_fallback_answers(scene, localizer) -> None:

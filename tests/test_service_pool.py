@@ -117,3 +117,28 @@ def test_a_cancelled_queued_job_is_skipped(pool, envelope) -> None:
     assert second.cancelled()
     with pytest.raises(concurrent.futures.CancelledError):
         second.result()
+
+
+def test_overload_says_how_long_the_queue_takes_to_drain(pool, envelope) -> None:
+    """Turned away, a request is told the expected wait (from the recent time per job), not a fixed second."""
+    from cadreg.errors import Overloaded
+
+    parts, meta = envelope
+    for _ in range(3):  # a few real jobs give the pool its time per job
+        pool.submit("scene0470", None, parts, meta.model_dump_json()).result(60)
+    per_job_s = pool._service_s
+    assert per_job_s is not None and 0.0 < per_job_s < 1.0
+    # one running + queue_depth (2) waiting: the pool is full
+    held = [pool.submit("scene0470", None, parts, meta.model_dump_json())]
+    try:
+        deadline = time.monotonic() + 10
+        while pool.workers_info()[0]["state"] != "busy" and time.monotonic() < deadline:
+            time.sleep(0.002)
+        held += [pool.submit("scene0470", None, parts, meta.model_dump_json()) for _ in range(2)]
+        with pytest.raises(Overloaded) as info:
+            pool.submit("scene0470", None, parts, meta.model_dump_json())
+        # 2 queued + this one, on 1 worker, at the recent time per job; never above the configured Retry-After
+        assert info.value.retry_after_s == pytest.approx(min(1.0, max(0.05, 3 * per_job_s)), abs=0.002)
+    finally:
+        for f in held:
+            f.result(60)

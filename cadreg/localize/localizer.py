@@ -208,9 +208,16 @@ class Localizer:
         # 6. fine refinement: of the best, and of its close rivals when the coarse stage is ambiguous ---------
         contenders = [best] + [v for v in verified[1:mc.refine_contenders]
                                if best[1] - v[1] < mc.ambiguity_margin and self._distinct(v[0], best[0])]
+        # Region of interest (paper §2.5, radius γ about the frame's centre under the hypothesis). The map's search
+        # structures are built once per site rather than cropped per frame; leaving out the frame points farther
+        # than γ from their centroid has the same effect, since correspondences are sought only a few centimetres
+        # from each frame point.
+        centre_camera = pts.xyz.mean(axis=0)
+        in_roi = np.flatnonzero(np.linalg.norm(pts.xyz - centre_camera, axis=1) <= rc.roi_radius_m)
+        roi_pts = pts.subset(in_roi) if len(in_roi) >= 100 else pts
         refined = []
         for v in contenders:
-            out = self.refine_map.refine(pts, v[0], method=method, epsilon=rc.epsilon, source_voxel_m=rc.source_voxel_m,
+            out = self.refine_map.refine(roi_pts, v[0], method=method, epsilon=rc.epsilon, source_voxel_m=rc.source_voxel_m,
                                          max_correspondence_m=rc.max_correspondence_m, max_iterations=rc.max_iterations)
             score = self._score(out.T_map_camera, fit_pts)
             refined.append((score, out, v))
@@ -229,9 +236,9 @@ class Localizer:
         fitness, rmse = self.refine_map.fitness(transform_points(T, fine_pts), inlier_m=rc.inlier_m)
         diag.refinement = Refinement(method=out.method, iterations=out.iterations, fitness=fitness, inlier_rmse_m=rmse,
                                      converged=out.converged)
-        centre = transform_points(T, ds.xyz.mean(axis=0, keepdims=True))[0]
+        centre = transform_points(T, centre_camera[None])[0]
         diag.roi = {"center": centre.tolist(), "radius_m": rc.roi_radius_m,
-                    "points": self.refine_map.roi_count(centre, rc.roi_radius_m)}
+                    "points": self.refine_map.roi_count(centre, rc.roi_radius_m), "frame_points": len(roi_pts)}
         if best[2].source == "graph":
             diag.matches = [Match(i, self.graph.ids[a], names[clusters[i].cls]) for i, a in enumerate(best[3]) if a >= 0]
         lap("refine"); step(6)
