@@ -122,6 +122,8 @@ class FallbackConfig(_Section):
     yaw_step_deg: float = Field(10.0, gt=0, le=90)
     min_graph_fitness: float = Field(0.9, ge=0, le=1, description="below this coarse fitness the graph's best is "
                                      "checked against the fallback too")
+    max_up_disagreement_deg: float = Field(25.0, gt=0, le=180, description="an FPFH + RANSAC pose that tilts the "
+                                           "frame's up direction further than this from the map's is refused")
 
 
 class LocalizeConfig(_Section):

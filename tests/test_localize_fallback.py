@@ -50,3 +50,27 @@ def test_fpfh_ransac_registers_a_piece_of_the_map(scene) -> None:
     T_est, fitness = reg.register(transform_points(invert_T(T), piece), max_iterations=20000)
     te, re_ = pose_errors(T_est, T)
     assert fitness > 0.5 and te < 0.05 and re_ < 2.0, (te, re_, fitness)
+
+
+def test_an_fpfh_pose_that_turns_the_camera_over_is_refused(scene, monkeypatch) -> None:
+    """FPFH + RANSAC ignores gravity; on a bare wall it may return the camera upside down. Such a pose is refused."""
+    from dataclasses import replace
+
+    from cadreg.config import FallbackConfig, LocalizeConfig
+    from cadreg.localize import Localizer
+
+    T = look_pose(np.array([3.1, 2.2, 1.45]), np.radians(200.0), np.radians(30.0))
+    frame = render_frame(scene, T, intrinsics=CameraIntrinsics(160, 120, 144.0, 144.0, 79.5, 59.5))
+    frame = replace(frame, labels=None, gravity_camera=T[:3, :3].T @ np.array([0.0, 0.0, -1.0]))
+    # min_graph_fitness 1: the fallback runs all its methods, FPFH + RANSAC included
+    loc = Localizer.from_site(scene.site, LocalizeConfig(fallback=FallbackConfig(min_graph_fitness=1.0)))
+    upside_down = T @ make_T(R=np.diag([1.0, -1.0, -1.0]))  # turned 180° about the camera's x axis
+    monkeypatch.setattr(FpfhRansac, "register", lambda self, xyz, **kw: (upside_down, 1.0))
+    r = loc.localize(frame)
+    assert any("fpfh-ransac refused" in n and "client" in n for n in r.diagnostics.notes), r.diagnostics.notes
+    assert all(h.source != "fallback:fpfh-ransac" for h in r.hypotheses)
+    # the same pose the right way up is taken as a hypothesis
+    monkeypatch.setattr(FpfhRansac, "register", lambda self, xyz, **kw: (T, 1.0))
+    r = loc.localize(frame)
+    assert not any("refused" in n for n in r.diagnostics.notes)
+    assert any(h.source == "fallback:fpfh-ransac" for h in r.hypotheses)

@@ -185,7 +185,7 @@ class Localizer:
         if cfg.fallback.enabled and best_fit < cfg.fallback.min_graph_fitness:
             # Cheapest first: the floor-constrained grid search, then FPFH + RANSAC if that is still weak.
             for name in ("floor-grid", "fpfh-ransac"):
-                fb = self._fallback(name, ds, floor, score_pts)
+                fb = self._fallback(name, ds, floor, score_pts, diag.notes)
                 if fb is None:
                     continue
                 found = self._verify(fb, src_coarse, fit_pts, source=f"fallback:{name}")
@@ -277,8 +277,10 @@ class Localizer:
             return kabsch_hypotheses(cent, ccls, self.graph, pair_tolerance_m=mc.pair_tolerance_m)
         return Hypotheses.empty()
 
-    def _fallback(self, name: str, ds: FramePoints, floor: Floor | None, score_pts: np.ndarray) -> Hypotheses | None:
-        """Hypotheses of one fallback method, or None when it cannot run (floor-grid needs up and a height)."""
+    def _fallback(self, name: str, ds: FramePoints, floor: Floor | None, score_pts: np.ndarray,
+                  notes: list[str]) -> Hypotheses | None:
+        """Hypotheses of one fallback method, or None when it cannot run (floor-grid needs up and a height) or
+        found nothing the frame's up direction allows."""
         fb = self.config.fallback
         height = None if floor is None else (floor.height_m if floor.height_m is not None else floor.floor_guess_m)
         if name == "floor-grid":
@@ -292,6 +294,12 @@ class Localizer:
                                  min_translation_m=mc.distinct_translation_m, min_rotation_deg=mc.distinct_rotation_deg)
             return hyp.take(np.array(keep, dtype=np.int64))
         T, _ = self.fpfh().register(ds.xyz)
+        if floor is not None:
+            # FPFH + RANSAC knows nothing of gravity: on a bare wall it happily returns the camera upside down.
+            tilt = np.degrees(np.arccos(np.clip((T[:3, :3] @ floor.up_camera) @ self.up, -1.0, 1.0)))
+            if tilt > fb.max_up_disagreement_deg:
+                notes.append(f"fallback fpfh-ransac refused: its pose tilts up by {tilt:.0f}° from the {floor.source}'s")
+                return None
         hyp = Hypotheses(T[None, :3, :3].copy(), T[None, :3, 3].copy(), np.array([[-1, -1]]))
         hyp.geometric = score_poses(self.field, score_pts, hyp.R, hyp.t, tau_m=self.config.match.score_tau_m)
         return hyp
