@@ -167,8 +167,9 @@ def error_from_body(
         return BadResponse(f"not an error body: {str(body)[:200]!r}", status=status)
     code = body["code"]
     detail = body.get("detail") if isinstance(body.get("detail"), dict) else {}
-    if "retry_after_s" in detail:
-        retry_after_s = _seconds(detail["retry_after_s"]) if _seconds(detail["retry_after_s"]) is not None else retry_after_s
+    hint_s = _seconds(detail.get("retry_after_s"))
+    if hint_s is not None:
+        retry_after_s = hint_s
     cls = ERRORS_BY_CODE.get(code)
     kwargs = dict(
         status=status,

@@ -368,8 +368,9 @@ class WorkerPool:
 
     def _expected_wait_s(self) -> float:
         """How long a turned-away request should wait (lock held): until the queue ahead of it has drained, from
-        the recent time per job, at most the configured Retry-After. HTTP's header can only say whole seconds; a
-        second is ten jobs here, so the finer figure travels in the error body and the clients prefer it."""
+        the recent time per job, at most the configured Retry-After. A job takes a fraction of a second and HTTP's
+        header can only say whole seconds, so the finer figure travels in the error body and the clients prefer it
+        (a fixed second left the pool idle half the time under overload)."""
         if self._service_s is None:
             return self._retry_after_s
         drain_s = (len(self._queue) + 1) * self._service_s / max(self._n, 1)

@@ -72,8 +72,9 @@ def _info(args: argparse.Namespace) -> int:
     if info["cad_fit"]:
         print(f"{'CAD fit':<12} {'model':<44} {'replaced':>8}  CAD samples to scan: median / p90 [cm]")
         for f in info["cad_fit"]:
-            print(f"{f['id']:<12} {f['cad_id']:<44} {f['raw_points_replaced']:>8}  "
-                  f"{100 * f['median_distance_to_scan_m']:.1f} / {100 * f['p90_distance_to_scan_m']:.1f}")
+            fit = ("-" if f["median_distance_to_scan_m"] is None else
+                   f"{100 * f['median_distance_to_scan_m']:.1f} / {100 * f['p90_distance_to_scan_m']:.1f}")
+            print(f"{f['id']:<12} {f['cad_id']:<44} {f['raw_points_replaced']:>8}  {fit}")
     return 0
 
 

@@ -153,10 +153,10 @@ def enhance_map(
             pts.astype(np.float32), colors, nrm.astype(np.float32),
             np.full(n, i, np.int32), np.full(n, cls_i, np.int16), np.full(n, SOURCE_CAD, np.uint8),
         ))
-        d = raw_tree.query(pts)[0] if raw_tree is not None else np.full(n, np.inf)
+        d = raw_tree.query(pts)[0] if raw_tree is not None else None
         fits.append({"id": f"cad-{i}", "cad_id": pl.cad_id, "raw_points_replaced": int(inside.sum()),
-                     "median_distance_to_scan_m": round(float(np.median(d)), 4),
-                     "p90_distance_to_scan_m": round(float(np.percentile(d, 90)), 4)})
+                     "median_distance_to_scan_m": None if d is None else round(float(np.median(d)), 4),
+                     "p90_distance_to_scan_m": None if d is None else round(float(np.percentile(d, 90)), 4)})
         nodes.append(ObjectNode(
             id=f"cad-{i}", cls=pl.cls, centroid=aabb_center(mesh.vertices), box_center=center, box_extent=extent,
             box_R=R, source="cad", cad_id=pl.cad_id, points=n,
