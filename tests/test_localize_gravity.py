@@ -59,6 +59,33 @@ def test_up_from_surfaces_without_labels() -> None:
     assert estimate_up_from_normals(rng.normal(size=(50, 3))) is None
 
 
+def _angle_deg(a, b) -> float:
+    return float(np.degrees(np.arccos(np.clip(a @ b, -1, 1))))
+
+
+def test_up_from_walls_alone_ignores_a_few_stray_horizontal_normals() -> None:
+    """A close view of a wall: a handful of stray normals (a ragged scan border, a shelf edge) must not tilt up."""
+    rng = np.random.default_rng(4)
+    R, t = _camera(30, roll_deg=2)
+    up_true = R.T @ [0, 0, 1]
+    # the wall ahead (y = 2.5; a wall along the view direction would leave the pitch free) and a strip of 30
+    # points facing 30° off vertical (no real horizontal surface)
+    wall = np.column_stack([rng.uniform(-1, 2, 3000), np.full(3000, 2.5), rng.uniform(0.2, 1.4, 3000)])
+    n_stray = Rotation.from_euler("x", 30, degrees=True).as_matrix() @ [0, 0, 1.0]
+    a, b = np.cross(n_stray, [1.0, 0, 0]), np.cross(n_stray, np.cross(n_stray, [1.0, 0, 0]))
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    strip = np.array([0.5, 2.3, 1.4]) + np.outer(rng.uniform(0, 0.3, 30), a) + np.outer(rng.uniform(0, 0.1, 30), b)
+    P = np.vstack([wall, strip]) + rng.normal(0, 0.001, (3030, 3))
+    fl = estimate_up_from_normals(P @ R + (-R.T @ t))
+    assert fl is not None and fl.source == "surfaces" and fl.height_m is None
+    assert _angle_deg(fl.up_camera, up_true) < 4.0  # the roll prior, up to the true roll
+    # two walls fix up whatever the roll
+    R, t = _camera(25, roll_deg=12)
+    wall2 = np.column_stack([np.full(3000, 2.0), rng.uniform(-1, 2.5, 3000), rng.uniform(0.2, 1.4, 3000)])
+    fl = estimate_up_from_normals(np.vstack([wall, wall2]) @ R + (-R.T @ t))
+    assert _angle_deg(fl.up_camera, R.T @ [0, 0, 1]) < 1.5
+
+
 def test_fit_plane_and_map_floor_height() -> None:
     rng = np.random.default_rng(3)
     pts = np.column_stack([rng.uniform(0, 1, 500), rng.uniform(0, 1, 500), 0.3 + rng.normal(0, 0.001, 500)])

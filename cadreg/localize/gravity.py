@@ -140,7 +140,7 @@ def planar_normals(xyz: np.ndarray, *, k: int = 12, max_points: int = 3000, max_
 
 def estimate_up_from_normals(xyz: np.ndarray, *, max_roll_deg: float = 25.0, pitch_range_deg: tuple[float, float] = (-30.0, 90.0),
                              step_deg: float = 2.0, tolerance_deg: float = 6.0, min_horizontal: int = 20,
-                             min_vertical: int = 150) -> Floor | None:
+                             min_vertical: int = 150, second_wall_ratio: float = 0.1) -> Floor | None:
     """Up direction from the frame's flat surfaces when no floor is labelled.
 
     Indoors, flat surfaces are horizontal (floor, table tops, seats) or vertical (walls, doors). A camera held by
@@ -168,8 +168,20 @@ def estimate_up_from_normals(xyz: np.ndarray, *, max_roll_deg: float = 25.0, pit
     best = int(np.argmax(score))
     u = up[best]
     if par[:, best].sum() < min_horizontal:
+        # Too little horizontal surface to count: a few stray normals (an edge, a ragged scan border) must not
+        # pick a tilted up over the upright one. Walls alone leave up on a circle; take the smallest roll on it.
+        n_perp = perp.sum(axis=0)
+        on_circle = np.flatnonzero(n_perp >= 0.9 * n_perp.max())
+        best = int(on_circle[np.lexsort((-n_perp[on_circle], np.abs(Rr[on_circle])))[0]])
+        u = up[best]
         if perp[:, best].sum() < min_vertical:
             return None
+        # Two walls that are not parallel fix up exactly (their normals' common perpendicular): then trust them
+        # over the roll prior; one wall leaves the circle, and the prior stands.
+        walls = normals[perp[:, best]]
+        w, V = np.linalg.eigh(walls.T @ walls / len(walls))
+        if w[1] > second_wall_ratio * w[2]:
+            u = V[:, 0] * np.sign(V[:, 0] @ u)
         return Floor(u, None, "surfaces", int(perp[:, best].sum()))
     n = normals[par[:, best]]
     n = n * np.sign(n @ u)[:, None]
