@@ -45,7 +45,9 @@ def format_table(summary: dict[str, Any]) -> str:
                      f"{summary['loadavg_1m']['start']:.1f} / {summary['loadavg_1m']['end']:.1f}"))
     rss = summary.get("service_rss_mb")
     if rss:
-        rows.append(("service RSS start / end / max", f"{rss['start']:.0f} / {rss['end']:.0f} / {rss['max']:.0f} MiB"))
+        rows.append(("service RSS start / 10% / end / max",
+                     f"{rss['start']:.0f} / {rss.get('after_10pct', rss['start']):.0f} / {rss['end']:.0f} / "
+                     f"{rss['max']:.0f} MiB"))
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"{k.ljust(width)}  {v}" for k, v in rows)
 

@@ -120,16 +120,19 @@ def test_errors_by_code_and_accuracy_over_answers() -> None:
 
 
 def test_json_document_has_the_contract_keys(tmp_path: Path) -> None:
+    readings = iter([100.0, 123.0, 124.0, 125.0])
     run = asyncio.run(run_load(FakeTarget(), _frames(2), LoadPlan(concurrency=2, n=6),
-                               rss_sampler=lambda: 123.0))
+                               rss_sampler=lambda: next(readings)))
     s = summarize(run)
     doc = json.loads(json.dumps(s))
     assert {"sent", "ok", "errors", "throughput_fps", "latency_ms", "accuracy"} <= set(doc)
     assert set(doc["latency_ms"]) == {"p50", "p90", "p99", "max"}
     assert {"success_5cm_5deg", "median_translation_m"} <= set(doc["accuracy"])
-    assert doc["service_rss_mb"] == {"start": 123.0, "end": 123.0, "max": 123.0, "min": 123.0, "samples": 2}
+    assert doc["service_rss_mb"] == {"start": 100.0, "after_10pct": 100.0, "end": 123.0, "max": 123.0, "min": 100.0,
+                                     "samples": 2}
     table = format_table(s)
     assert "throughput" in table and "p50" in table and "success@5cm" in table
+    assert "100 / 100 / 123 / 123 MiB" in table
     png = plot_run(run, tmp_path / "lat.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
