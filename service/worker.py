@@ -55,7 +55,7 @@ class _Sites:
         site = Site.load(path)
         if site.site_id != site_id:
             raise UnknownSite(f"bundle at {path} is site {site.site_id!r}, expected {site_id!r}")
-        localizer = Localizer.from_site(site, self.config)
+        localizer = Localizer.from_site(site, self.config).warm()
         versions = self.by_site.setdefault(site_id, OrderedDict())
         versions.pop(site.version, None)
         versions[site.version] = localizer

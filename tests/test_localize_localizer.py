@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cadreg.camera import CameraIntrinsics
-from cadreg.config import LocalizeConfig, RefineConfig
+from cadreg.config import FallbackConfig, LocalizeConfig, RefineConfig
 from cadreg.errors import InvalidFrame
 from cadreg.frame import Frame
 from cadreg.geometry import pose_errors
@@ -168,6 +168,14 @@ def test_real_scene0470_renders(scene0470_site_dir, scene0470_dir, tmp_path) -> 
     assert ok >= 4
     png = render_localization_png(site, f, r, T_true=T)
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_warm_builds_the_fallback_features_up_front(scene) -> None:
+    loc = Localizer.from_site(scene.site)
+    assert loc._fpfh is None  # built on first use ...
+    assert loc.warm() is loc and loc._fpfh is not None  # ... or up front, as the service's workers do
+    off = Localizer.from_site(scene.site, LocalizeConfig(fallback=FallbackConfig(enabled=False))).warm()
+    assert off._fpfh is None
 
 
 def test_config_is_validated() -> None:

@@ -86,6 +86,13 @@ class Localizer:
         )
 
     # ------------------------------------------------------------------------------------------------------------
+    def warm(self) -> "Localizer":
+        """Build now what is otherwise built on first use (the map's FPFH features for the fallback, about a second
+        a site), so that a long-running server does not make its first fallback request pay for it."""
+        if self.config.fallback.enabled:
+            self.fpfh()
+        return self
+
     def fpfh(self) -> FpfhRansac:
         """The FPFH + RANSAC registrar of this site (map features computed on first use)."""
         if self._fpfh is None:
