@@ -239,7 +239,8 @@ class ZenohServer:
                 self._cond.wait(_OVERLOAD_RETRY_S)
             return
         except Exception as exc:
-            self._outbox.put(lambda: self._publish_error(device, exc, request_id, frame_id, t0))
+            # bind exc now: Python unbinds the name when the except block ends, before the outbox thread runs this
+            self._outbox.put(lambda exc=exc: self._publish_error(device, exc, request_id, frame_id, t0))
             return
         future.add_done_callback(
             lambda f: self._outbox.put(lambda: self._publish_done(device, f, request_id, frame_id, t0)))

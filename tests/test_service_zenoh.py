@@ -167,4 +167,9 @@ def test_stream_errors_are_published_with_the_frame_id(session, frames) -> None:
     body = received[0]
     assert body["code"] == "invalid_frame" and "depth" in body["message"]
     assert body["detail"]["frame_id"] == "bad-1" and body["detail"]["device_id"] == "cam-2"
+    # a payload that is no envelope at all fails before the pool; its error is published all the same
+    got.clear()
+    session.put(f"cadreg/{SITE}/frames/cam-2", b"not an envelope")
+    assert got.wait(30)
+    assert received[1]["code"] == "invalid_frame" and received[1]["detail"]["device_id"] == "cam-2"
     sub.undeclare()
