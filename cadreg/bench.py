@@ -27,11 +27,11 @@ import small_gicp
 from scipy.spatial.transform import Rotation
 
 from .frame import Frame
-from .geometry import invert_T, make_T, pose_errors, transform_points
+from .geometry import invert_T, pose_errors, transform_points
 from .localize.localizer import Localizer
 from .localize.points import frame_to_points
 from .localize.refine import REFINE_METHODS
-from .result import SUCCESS_STATUSES, Status
+from .result import Status
 
 BASE_METHODS = ("cadreg", "cadreg-nolabels", "fpfh-ransac", "refine-from-gt-perturbed")
 METHODS = BASE_METHODS + tuple(f"cadreg:{m}" for m in REFINE_METHODS) + tuple(

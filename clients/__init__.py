@@ -3,7 +3,7 @@
     clients.http          Client, AsyncClient (httpx): localize, sites, site, health, ready, metrics_text; pose_of
     clients.zenoh_client  ZenohClient (query cadreg/<site>/localize) and PoseStream (frames/poses stream mode)
     clients.errors        one exception class per wire code (InvalidFrame, UnknownSite, Overloaded, ...)
-    clients.retry         RetryPolicy (backoff + jitter, Retry-After) and ClientPause
+    clients.retry         RetryPolicy (backoff + jitter, Retry-After), ClientPause, RetryLoop
     clients.frames        EncodedFrame: a cadreg Frame or a recorded-frames folder entry as wire parts
     clients.load          load tester core (closed/open loop), clients.load_cli is `cadreg load`
     clients.report        load test tables and PNGs

@@ -19,7 +19,6 @@ from __future__ import annotations
 import asyncio
 import email.utils
 import math
-import threading
 import time
 from datetime import timezone
 from typing import Any, Callable
@@ -30,7 +29,7 @@ import numpy as np
 
 from .errors import BadResponse, ClientError, ClientTimeout, Unreachable, error_from_body
 from .frames import EncodedFrame, FolderCache, FrameLike, to_encoded
-from .retry import ClientPause, RetryHook, RetryPolicy
+from .retry import RetryHook, RetryLoop, RetryPolicy
 
 DEFAULT_CONNECT_TIMEOUT_S = 5.0
 DEFAULT_READ_TIMEOUT_S = 120.0
@@ -112,14 +111,15 @@ class _Base:
     ) -> None:
         self.base_url = base_url.rstrip("/")
         self.timeout = httpx.Timeout(read_timeout_s, connect=connect_timeout_s)
-        self.deadline_s = deadline_s
         self.retry = retry or RetryPolicy()
-        self.on_retry = on_retry
         self.top_k = top_k
-        self.retries = 0  # retries made over this client's life (for load reports)
-        self._count_lock = threading.Lock()  # the sync client is shared by threads
-        self._pause = ClientPause(self.retry)
+        self._retry_loop = RetryLoop(self.retry, deadline_s=deadline_s, on_retry=on_retry)
         self._folders = FolderCache()
+
+    @property
+    def retries(self) -> int:
+        """Retries made over this client's life (for load reports)."""
+        return self._retry_loop.count
 
     def _encode(self, frame: FrameLike, frame_id: str | None, top_k: int | None) -> EncodedFrame:
         enc = to_encoded(frame, top_k=top_k if top_k is not None else self.top_k, cache=self._folders)
@@ -128,19 +128,6 @@ class _Base:
     @staticmethod
     def _localize_path(site_id: str) -> str:
         return f"/v1/sites/{quote(site_id, safe='')}/localize"
-
-    def _next_delay(self, attempt: int, error: ClientError, started: float) -> float | None:
-        self._pause.note(error, time.monotonic())
-        delay = self.retry.delay_s(attempt, error)
-        if delay is None:
-            return None
-        if self.deadline_s is not None and time.monotonic() - started + delay > self.deadline_s:
-            return None
-        with self._count_lock:
-            self.retries += 1
-        if self.on_retry is not None:
-            self.on_retry(attempt + 1, error, delay)
-        return delay
 
 
 class Client(_Base):
@@ -186,7 +173,7 @@ class Client(_Base):
     def _request(self, method: str, path: str, **kwargs: Any) -> Any:
         started = time.monotonic()
         attempt = 0
-        pause = self._pause.wait_s(started)
+        pause = self._retry_loop.pause.wait_s(started)
         if pause > 0:
             self._sleep(pause)
         while True:
@@ -196,7 +183,7 @@ class Client(_Base):
                 error = _transport_error(exc, self.base_url + path)
             except ClientError as exc:
                 error = exc
-            delay = self._next_delay(attempt, error, started)
+            delay = self._retry_loop.next_delay(attempt, error, started)
             if delay is None:
                 raise error
             self._sleep(delay)
@@ -273,7 +260,7 @@ class AsyncClient(_Base):
     async def _request(self, method: str, path: str, **kwargs: Any) -> Any:
         started = time.monotonic()
         attempt = 0
-        pause = self._pause.wait_s(started)
+        pause = self._retry_loop.pause.wait_s(started)
         if pause > 0:
             await self._sleep(pause)
         while True:
@@ -283,7 +270,7 @@ class AsyncClient(_Base):
                 error = _transport_error(exc, self.base_url + path)
             except ClientError as exc:
                 error = exc
-            delay = self._next_delay(attempt, error, started)
+            delay = self._retry_loop.next_delay(attempt, error, started)
             if delay is None:
                 raise error
             await self._sleep(delay)

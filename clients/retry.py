@@ -8,6 +8,8 @@ connection dropped before an answer). Never retried: 4xx answers (the same reque
 from __future__ import annotations
 
 import random
+import threading
+import time
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -73,6 +75,34 @@ class ClientPause:
         if now >= self._until:
             return 0.0
         return self._until - now + self.policy.jitter_s(self._retry_after_s)
+
+
+class RetryLoop:
+    """One client's retry bookkeeping, the same for HTTP and zenoh: its pause, the deadline of a call (retries
+    included), the retry count over its life (for load reports) and the `on_retry` hook. Thread-safe."""
+
+    def __init__(self, policy: RetryPolicy, *, deadline_s: float | None = None, on_retry: RetryHook | None = None) -> None:
+        self.policy = policy
+        self.deadline_s = deadline_s
+        self.on_retry = on_retry
+        self.pause = ClientPause(policy)
+        self.count = 0
+        self._lock = threading.Lock()
+
+    def next_delay(self, attempt: int, error: ClientError, started: float) -> float | None:
+        """Seconds to wait before retrying a call begun at `started` (time.monotonic) that failed with `error` on
+        attempt `attempt` (from 0), or None to raise it: not retryable, retries spent, or past the deadline."""
+        self.pause.note(error, time.monotonic())
+        delay = self.policy.delay_s(attempt, error)
+        if delay is None:
+            return None
+        if self.deadline_s is not None and time.monotonic() - started + delay > self.deadline_s:
+            return None
+        with self._lock:
+            self.count += 1
+        if self.on_retry is not None:
+            self.on_retry(attempt + 1, error, delay)
+        return delay
 
 
 NO_RETRY = RetryPolicy(max_retries=0)

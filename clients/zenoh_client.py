@@ -24,18 +24,16 @@ from __future__ import annotations
 import itertools
 import json
 import queue
-import threading
 import time
 from dataclasses import dataclass
 from typing import Any, Iterable, Iterator, Sequence
 
 import zenoh
 
-import service.codec as codec
 
 from .errors import BadResponse, ClientError, ClientTimeout, Unreachable, error_from_body
 from .frames import EncodedFrame, FolderCache, FrameLike, to_encoded
-from .retry import ClientPause, RetryHook, RetryPolicy
+from .retry import RetryHook, RetryLoop, RetryPolicy
 
 DEFAULT_QUERY_TIMEOUT_S = 120.0
 _BAD_KEY_CHARS = set("*$#?/ ")
@@ -104,13 +102,9 @@ class ZenohClient:
         endpoints = [connect] if isinstance(connect, str) else list(connect)
         self.timeout_s = float(timeout_s)
         self.retry = retry or RetryPolicy()
-        self.on_retry = on_retry
         self.top_k = top_k
-        self.deadline_s = deadline_s
-        self.retries = 0
+        self._retry_loop = RetryLoop(self.retry, deadline_s=deadline_s, on_retry=on_retry)
         self._folders = FolderCache()
-        self._lock = threading.Lock()
-        self._pause = ClientPause(self.retry)
         if session is not None:
             self.session, self._owns = session, False
         else:
@@ -121,6 +115,11 @@ class ZenohClient:
             except zenoh.ZError as exc:
                 raise Unreachable(f"cannot open a zenoh session to {', '.join(endpoints)}: {exc}") from None
             self._owns = True
+
+    @property
+    def retries(self) -> int:
+        """Retries made over this client's life (for load reports)."""
+        return self._retry_loop.count
 
     def __enter__(self) -> "ZenohClient":
         return self
@@ -177,24 +176,16 @@ class ZenohClient:
         """`localize` for an already packed envelope (`EncodedFrame.envelope()`), with the retries."""
         started = time.monotonic()
         attempt = 0
-        pause = self._pause.wait_s(started)
+        pause = self._retry_loop.pause.wait_s(started)
         if pause > 0:
             time.sleep(pause)
         while True:
             try:
                 return self.query_once(site_id, payload, timeout_s)
             except ClientError as error:
-                self._pause.note(error, time.monotonic())
-                delay = self.retry.delay_s(attempt, error)
-                if delay is not None and self.deadline_s is not None:
-                    if time.monotonic() - started + delay > self.deadline_s:
-                        delay = None
+                delay = self._retry_loop.next_delay(attempt, error, started)
                 if delay is None:
                     raise
-                with self._lock:
-                    self.retries += 1
-                if self.on_retry is not None:
-                    self.on_retry(attempt + 1, error, delay)
                 time.sleep(delay)
                 attempt += 1
 

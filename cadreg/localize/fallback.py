@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from .match import Hypotheses, yaw_rotations
-from .score import DistanceField, score_poses
+from .score import DistanceField
 
 
 def floor_grid_search(field: DistanceField, points_level: np.ndarray, up: np.ndarray, camera_up_m: float, *,
