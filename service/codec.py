@@ -107,16 +107,22 @@ def _decode_color(data: bytes) -> np.ndarray:
     return np.ascontiguousarray(arr, dtype=np.uint8)
 
 
-def _decode_depth(data: bytes) -> np.ndarray:
-    img = _open_image(data, "depth", ("PNG",))
+def _uint16(img, what: str) -> np.ndarray | None:
+    """A 16-bit grayscale image as uint16 (Pillow reads some as 32-bit "I"), None for any other mode."""
     if img.mode in ("I;16", "I;16B", "I;16L"):
-        arr = np.asarray(img).astype(np.uint16, copy=False)
-    elif img.mode == "I":
+        return np.asarray(img).astype(np.uint16, copy=False)
+    if img.mode == "I":
         arr = np.asarray(img)
         if arr.size and (arr.min() < 0 or arr.max() > 65535):
-            raise InvalidFrame("depth values must fit 16 bits")
-        arr = arr.astype(np.uint16)
-    else:
+            raise InvalidFrame(f"{what} must fit 16 bits")
+        return arr.astype(np.uint16)
+    return None
+
+
+def _decode_depth(data: bytes) -> np.ndarray:
+    img = _open_image(data, "depth", ("PNG",))
+    arr = _uint16(img, "depth values")
+    if arr is None:
         raise InvalidFrame(f"depth must be a 16-bit grayscale PNG, got mode {img.mode}")
     return np.ascontiguousarray(arr)
 
@@ -125,15 +131,10 @@ def _decode_labels(data: bytes) -> np.ndarray:
     img = _open_image(data, "labels", ("PNG",))
     if img.mode in ("L", "P"):
         arr = np.asarray(img).astype(np.uint8, copy=False)  # palette images: the indices are the labels
-    elif img.mode in ("I;16", "I;16B", "I;16L"):
-        arr = np.asarray(img).astype(np.uint16, copy=False)
-    elif img.mode == "I":
-        arr = np.asarray(img)
-        if arr.size and (arr.min() < 0 or arr.max() > 65535):
-            raise InvalidFrame("label ids must fit 16 bits")
-        arr = arr.astype(np.uint16)
     else:
-        raise InvalidFrame(f"labels must be an 8- or 16-bit grayscale PNG, got mode {img.mode}")
+        arr = _uint16(img, "label ids")
+        if arr is None:
+            raise InvalidFrame(f"labels must be an 8- or 16-bit grayscale PNG, got mode {img.mode}")
     return np.ascontiguousarray(arr)
 
 
