@@ -8,9 +8,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cadreg.camera import CameraIntrinsics
-from cadreg.geometry import invert_T, make_T, pose_errors, transform_points
+from cadreg.geometry import make_T, pose_errors, transform_points
 from cadreg.localize.color_gicp import ColorGicpTarget, color_gicp, plane_covariances, prepare_cloud, rgb_to_lab
-from cadreg.localize.points import FramePoints, frame_to_points
+from cadreg.localize.points import frame_to_points
 from cadreg.localize.refine import RefineMap
 from cadreg.localize.synthetic import look_pose, make_scene, render_frame
 
