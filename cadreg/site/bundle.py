@@ -153,30 +153,21 @@ class Site:
         files["site.json"] = json.dumps(self.meta, indent=1, sort_keys=True).encode()
         write_bundle_dir(out_dir, files)
 
+    @staticmethod
+    def read_manifest(site_dir: str | Path, *, verify: bool = True) -> dict[str, Any]:
+        """The bundle's site.json, checked: schema, required keys, the version against the file hashes and, with
+        `verify`, every data file's sha256 (files are hashed, not parsed). Raises InvalidFileError or
+        BundleIntegrityError naming the file. For runners that need a site's id, version and counts
+        (`meta["counts"]`) without loading its arrays."""
+        return _read_checked(Path(site_dir), verify=verify)[0]
+
     @classmethod
     def load(cls, site_dir: str | Path) -> "Site":
         """Read and verify a bundle. Raises InvalidFileError (missing/malformed file) or BundleIntegrityError (a file
         whose sha256 differs from site.json, or a version that does not match the hashes), naming the file."""
         root = Path(site_dir)
         meta_path = root / "site.json"
-        meta = read_json(meta_path)
-        if not isinstance(meta, dict) or meta.get("schema") != SCHEMA:
-            raise InvalidFileError(meta_path, f"not a cadreg site (schema {meta.get('schema') if isinstance(meta, dict) else None!r}, expected {SCHEMA!r})")
-        for key in ("site_id", "version", "files", "classes", "label_maps"):
-            if key not in meta:
-                raise InvalidFileError(meta_path, f"missing key {key!r}")
-        hashes = meta["files"]
-        if not isinstance(hashes, dict) or set(hashes) != set(DATA_FILES):
-            raise InvalidFileError(meta_path, f"'files' must list exactly {list(DATA_FILES)}")
-        blobs: dict[str, bytes] = {}
-        for name in DATA_FILES:
-            blob = read_bytes(root / name)
-            if sha256_bytes(blob) != hashes[name]:
-                raise BundleIntegrityError(root / name, "sha256 does not match site.json: the file was modified "
-                                           "or belongs to another build")
-            blobs[name] = blob
-        if version_of(hashes) != meta["version"]:
-            raise BundleIntegrityError(meta_path, f"version {meta['version']!r} does not match the file hashes")
+        meta, blobs = _read_checked(root, verify=True)
         m = _cloud_from_ply(blobs["map.ply"], root / "map.ply")
         r = _cloud_from_ply(blobs["raw.ply"], root / "raw.ply")
         try:
@@ -199,3 +190,29 @@ class Site:
             raw_class_index=r["class_index"],
             graph=graph, classes=classes, label_maps=label_maps,
         )
+
+
+def _read_checked(root: Path, *, verify: bool) -> tuple[dict[str, Any], dict[str, bytes]]:
+    """(site.json, {data file: bytes}) of the bundle at `root`; the blobs only when `verify` (they are read to be
+    hashed, and `Site.load` parses the same bytes rather than reading them twice)."""
+    meta_path = root / "site.json"
+    meta = read_json(meta_path)
+    if not isinstance(meta, dict) or meta.get("schema") != SCHEMA:
+        raise InvalidFileError(meta_path, f"not a cadreg site (schema {meta.get('schema') if isinstance(meta, dict) else None!r}, expected {SCHEMA!r})")
+    for key in ("site_id", "version", "files", "classes", "label_maps"):
+        if key not in meta:
+            raise InvalidFileError(meta_path, f"missing key {key!r}")
+    hashes = meta["files"]
+    if not isinstance(hashes, dict) or set(hashes) != set(DATA_FILES):
+        raise InvalidFileError(meta_path, f"'files' must list exactly {list(DATA_FILES)}")
+    if version_of(hashes) != meta["version"]:
+        raise BundleIntegrityError(meta_path, f"version {meta['version']!r} does not match the file hashes")
+    blobs: dict[str, bytes] = {}
+    if verify:
+        for name in DATA_FILES:
+            blob = read_bytes(root / name)
+            if sha256_bytes(blob) != hashes[name]:
+                raise BundleIntegrityError(root / name, "sha256 does not match site.json: the file was modified "
+                                           "or belongs to another build")
+            blobs[name] = blob
+    return meta, blobs
