@@ -26,6 +26,7 @@ import numpy as np
 import small_gicp
 from scipy.spatial.transform import Rotation
 
+from .errors import InvalidArgument
 from .frame import Frame
 from .geometry import invert_T, pose_errors, transform_points
 from .localize.localizer import Localizer
@@ -56,7 +57,7 @@ class FrameOutcome:
 
 def check_method(name: str) -> str:
     if name not in METHODS:
-        raise ValueError(f"unknown bench method {name!r}; choose from {', '.join(METHODS)}")
+        raise InvalidArgument(f"unknown bench method {name!r}; choose from {', '.join(METHODS)}")
     return name
 
 
@@ -130,7 +131,7 @@ class Bench:
                                         max_correspondence_m=rc.max_correspondence_m, max_iterations=rc.max_iterations)
             T, status = out.T_map_camera, Status.OK.value
         else:
-            raise ValueError(f"unknown bench method {method!r}")
+            raise InvalidArgument(f"unknown bench method {method!r}")
         total_ms = (time.perf_counter() - t0) * 1000.0
         if T is None:
             te, re_ = float("inf"), float("inf")

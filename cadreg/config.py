@@ -57,7 +57,12 @@ class FrameConfig(_Section):
     max_depth_m: float = Field(6.0, gt=0)
     pixel_stride: int = Field(2, ge=1, description="use every n-th depth pixel: halves time at no loss (DESIGN §9)")
     voxel_size_m: float = Field(0.03, gt=0, description="voxel down-sampling of the frame points for clustering and scoring")
+    min_points: int = Field(100, ge=1, description="fewer valid depth points than this is no frame to register "
+                            "(too few for a plane, a cluster and a GICP)")
     score_points: int = Field(300, ge=20, description="frame points used to score each hypothesis on the distance field")
+    fit_points: int = Field(800, ge=20, description="frame points whose label and colour agreement with the map rank "
+                            "the coarse-aligned hypotheses (enough for a 1 % resolution, cheap enough for 20 poses)")
+    check_points: int = Field(2000, ge=20, description="frame points of the final fitness and inlier RMSE")
 
 
 class ClusterConfig(_Section):
@@ -68,12 +73,12 @@ class ClusterConfig(_Section):
 
 
 class MatchConfig(_Section):
-    """Coarse graph matching (paper §2.4)."""
+    """Coarse graph matching (paper §2.4). δ, the edge length of scan graphs, is the site's own (its build
+    parameters, `Site.edge_max_m`): scan and map graphs must be built alike to be compared."""
 
     alpha: float = Field(0.5, ge=0, description="weight of node similarity S_V in Sim")
     beta: float = Field(0.5, ge=0, description="weight of edge similarity S_E in Sim")
     top_k: int = Field(5, ge=1, description="hypotheses reported in the result")
-    edge_max_m: float = Field(1.5, gt=0, description="δ: scan objects at most this far apart form an edge")
     yaw_step_deg: float = Field(10.0, gt=0, le=90, description="yaw sweep for single-object hypotheses (gravity known)")
     pair_tolerance_m: float = Field(0.4, gt=0, description="centroid distances of matched pairs may differ by this "
                                     "(partially seen objects have shifted centroids)")
@@ -90,6 +95,8 @@ class MatchConfig(_Section):
                                    "ranking of coarse-aligned hypotheses")
     color_weight: float = Field(0.3, ge=0, le=1, description="share of colour agreement with the map in that ranking")
     ambiguity_margin: float = Field(0.03, ge=0, description="a distinct runner-up within this fitness of the best is ambiguous")
+    confident_margin: float = Field(0.1, gt=0, description="a best that beats its distinct runner-up by this much "
+                                    "score keeps its whole confidence; a tie halves it")
     refine_contenders: int = Field(3, ge=1, description="when ambiguous, this many best hypotheses are refined fully")
     distinct_translation_m: float = Field(0.3, gt=0)
     distinct_rotation_deg: float = Field(15.0, gt=0)

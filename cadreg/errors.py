@@ -2,7 +2,10 @@
 
     CadregError                      base of everything cadreg raises on purpose
     ├── InputError                   something handed to cadreg is wrong; fix the input and retry
-    │   ├── InvalidFrame             an RGB-D frame that cannot be registered (sizes, dtypes, intrinsics, empty depth)
+    │   ├── InvalidArgument          a value handed to a core function outside its domain (an array's shape, an
+    │   │                            unknown method name); also a ValueError, as Python callers expect
+    │   ├── InvalidFrame             an RGB-D frame that cannot be registered (sizes, dtypes, intrinsics, empty depth,
+    │   │                            a label set the site has no map for)
     │   ├── InvalidFileError         a file that is missing, unreadable or malformed (names the file)
     │   │   └── BundleIntegrityError a site bundle whose files do not match the sha256 in its site.json
     │   └── ConfigError              parameters outside their bounds
@@ -37,6 +40,10 @@ class CadregError(Exception):
 
 
 class InputError(CadregError):
+    code = "invalid_input"
+
+
+class InvalidArgument(InputError, ValueError):
     code = "invalid_input"
 
 

@@ -29,6 +29,17 @@ SUCCESS_STATUSES = (Status.OK, Status.AMBIGUOUS)
 
 @dataclass
 class Hypothesis:
+    """One pose hypothesis as reported (`LocalizationResult.hypotheses`), after its coarse GICP.
+
+    T_map_camera : (4, 4) float64, colour camera -> map, metres.
+    sim, s_v, s_e : the paper's Sim = α·S_V + β·S_E and its node and edge terms (eq. 6–8), in [0, 1]; 0 for
+        hypotheses not from the graph.
+    geometric_score : geometric fitness weighted by label and colour agreement with the map, in [0, 1] (what
+        hypotheses are ranked by).
+    matches : (scan object index, map node id) pairs the hypothesis rests on.
+    source : "graph" | "prior" | "fallback:<name>".
+    """
+
     T_map_camera: np.ndarray
     sim: float
     s_v: float
@@ -51,8 +62,11 @@ class Hypothesis:
 
 @dataclass
 class ScanObject:
+    """An object found in the frame: its graph class, centroid (colour-camera frame, metres) and point count (at
+    the frame's voxel size)."""
+
     cls: str
-    centroid: list[float]  # colour-camera frame, metres
+    centroid: list[float]
     points: int
 
     def to_dict(self) -> dict[str, Any]:
@@ -61,6 +75,9 @@ class ScanObject:
 
 @dataclass
 class Match:
+    """Scan object `scan_object` (index into `Diagnostics.scan_objects`) matched to map node `node_id` of class
+    `cls`."""
+
     scan_object: int
     node_id: str
     cls: str
@@ -71,6 +88,9 @@ class Match:
 
 @dataclass
 class Refinement:
+    """The fine refinement: `method` (one of the refinement methods), `iterations`, `fitness` (share of the frame's
+    points within the inlier distance of the map, in [0, 1]), `inlier_rmse_m` (their RMSE, metres), `converged`."""
+
     method: str = ""
     iterations: int = 0
     fitness: float = 0.0
@@ -82,13 +102,41 @@ class Refinement:
 
 
 @dataclass
+class Roi:
+    """The region of interest of the refinement (paper §2.5).
+
+    center : [x, y, z] of the frame's centre under the refined pose, map frame, metres. radius_m : γ, metres.
+    points : map points (at the fitness resolution) within the radius. frame_points : frame points refined.
+    """
+
+    center: list[float]
+    radius_m: float
+    points: int
+    frame_points: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"center": [float(x) for x in self.center], "radius_m": float(self.radius_m),
+                "points": int(self.points), "frame_points": int(self.frame_points)}
+
+
+@dataclass
 class Diagnostics:
+    """The evidence behind a result.
+
+    scan_objects : objects found in the frame. matches : of the winning graph hypothesis. roi : the refinement's
+    region of interest, None when nothing was refined. refinement : the fine refinement, None likewise.
+    stage_ms : wall milliseconds per stage (points, cluster, gravity, match, verify, fallback, refine).
+    method : which path produced the pose: "cadreg" (the graph) | "fallback:<name>" | "prior".
+    site_id, bundle_version : the site and bundle that answered. frame_points : valid depth points used.
+    notes : what a person reading the result should know (up source, refused fallbacks, close rivals).
+    """
+
     scan_objects: list[ScanObject] = field(default_factory=list)
     matches: list[Match] = field(default_factory=list)
-    roi: dict[str, Any] | None = None  # {"center": [x, y, z], "radius_m": r, "points": map n, "frame_points": n}
+    roi: Roi | None = None
     refinement: Refinement | None = None
     stage_ms: dict[str, float] = field(default_factory=dict)
-    method: str = "cadreg"  # which path produced the pose: cadreg (graph) | fallback:<name> | prior
+    method: str = "cadreg"
     site_id: str = ""
     bundle_version: str = ""
     frame_points: int = 0
@@ -98,7 +146,7 @@ class Diagnostics:
         return {
             "scan_objects": [o.to_dict() for o in self.scan_objects],
             "matches": [m.to_dict() for m in self.matches],
-            "roi": self.roi,
+            "roi": self.roi.to_dict() if self.roi else None,
             "refinement": self.refinement.to_dict() if self.refinement else None,
             "stage_ms": {k: float(v) for k, v in self.stage_ms.items()},
             "method": self.method,
@@ -111,10 +159,18 @@ class Diagnostics:
 
 @dataclass
 class LocalizationResult:
+    """The answer to one frame (DESIGN §5).
+
+    status : see `Status`. T_map_camera : (4, 4) float64 colour camera -> map, metres; None unless the status is
+    `ok` or `ambiguous`. confidence : in [0, 1] (`localize.stages.confidence`). covariance : (6, 6) over
+    (rx, ry, rz, tx, ty, tz), rad² / m², or None. hypotheses : the best `top_k`, best first. diagnostics : the
+    evidence. frame_id : echoed from the frame.
+    """
+
     status: Status
     T_map_camera: np.ndarray | None = None
     confidence: float = 0.0
-    covariance: np.ndarray | None = None  # (6, 6) over (rx, ry, rz, tx, ty, tz), rad² / m²
+    covariance: np.ndarray | None = None
     hypotheses: list[Hypothesis] = field(default_factory=list)
     diagnostics: Diagnostics = field(default_factory=Diagnostics)
     frame_id: str | None = None

@@ -59,9 +59,9 @@ def test_demo_site_nodes_and_cad_path(demo_dir: Path) -> None:
     for p in (q for q in LAYOUT if q.cad):
         d = min(np.linalg.norm(np.asarray(n.centroid[:2]) - p.xy) for n in cad)
         assert d < 0.1
-    assert np.count_nonzero(site.source == 1) > 10_000  # CAD points put into the map
-    assert site.meta["inputs"]["scan2cad"]["id_scan"] == "demo_room"
-    assert len(site.meta["inputs"]["cad_models"]) == len({p.model for p in LAYOUT if p.cad})
+    assert np.count_nonzero(site.map.source == 1) > 10_000  # CAD points put into the map
+    assert site.manifest["inputs"]["scan2cad"]["id_scan"] == "demo_room"
+    assert len(site.manifest["inputs"]["cad_models"]) == len({p.model for p in LAYOUT if p.cad})
     assert len(PANELS) == 3
 
 

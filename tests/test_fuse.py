@@ -74,10 +74,10 @@ def test_cli_site_fuse_with_labels(rendered_labelled, tmp_path: Path, capsys) ->
     # the fused frames themselves (random views of a room, no held-out frame sees the same parts) lie on the map
     assert report["check"]["frames"] == 8 and report["check"]["median_m"] < 0.02
     site = Site.load(tmp_path / "site")
-    assert site.site_id == "fused0470" and len(site.points) > 10_000
+    assert site.site_id == "fused0470" and len(site.map.points) > 10_000
     classes = {n.cls for n in site.graph.nodes}
     assert "chair" in classes and all(n.source == "cluster" for n in site.graph.nodes)
-    assert site.meta["inputs"]["frames"]["count"] == 8
+    assert site.manifest["inputs"]["frames"]["count"] == 8
 
 
 def test_color_registration_and_errors(tmp_path: Path) -> None:
@@ -113,5 +113,5 @@ def test_redkitchen_map_from_250_frames(redkitchen_dir: Path, tmp_path: Path) ->
                  "--out", str(tmp_path / "redkitchen")]) == 0
     site = Site.load(tmp_path / "redkitchen")
     frames = RecordedFrames.open(redkitchen_dir)
-    median = median_distance_to_map(site.points, frames, range(250, 500, 5))
+    median = median_distance_to_map(site.map.points, frames, range(250, 500, 5))
     assert median < 0.03, median

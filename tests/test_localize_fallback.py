@@ -21,8 +21,8 @@ def scene():
 
 def test_floor_grid_search_finds_the_pose_among_its_best(scene) -> None:
     site = scene.site
-    field = DistanceField(site.points)
-    rmap = RefineMap(site.points, site.colors / 255.0)
+    field = DistanceField(site.map.points)
+    rmap = RefineMap(site.map.points, site.map.colors / 255.0)
     T = look_pose(np.array([3.1, 2.2, 1.45]), np.radians(200.0), np.radians(30.0))
     frame = render_frame(scene, T, intrinsics=CameraIntrinsics(160, 120, 144.0, 144.0, 79.5, 59.5))
     pts = voxel_downsample(frame_to_points(frame), 0.05).xyz
@@ -42,7 +42,7 @@ def test_floor_grid_search_finds_the_pose_among_its_best(scene) -> None:
 def test_fpfh_ransac_registers_a_piece_of_the_map(scene) -> None:
     """A piece of the map (objects and walls around a spot) moved by a known transform is found again."""
     site = scene.site
-    P = np.asarray(site.points, dtype=np.float64)
+    P = np.asarray(site.map.points, dtype=np.float64)
     centre = np.asarray(site.graph.nodes[0].centroid)
     piece = P[np.linalg.norm(P[:, :2] - centre[:2], axis=1) < 1.8]
     T = look_pose(centre + [0.5, -1.0, 1.0], np.radians(70.0), np.radians(30.0))  # T_map_camera

@@ -69,8 +69,8 @@ def test_known_poses_are_recovered(scene, localizer) -> None:
         d = r.diagnostics
         assert d.method == "cadreg" and len(d.scan_objects) >= 2 and d.matches
         assert set(d.stage_ms) >= {"points", "cluster", "gravity", "match", "verify", "refine"}
-        assert d.refinement.fitness > 0.9 and d.roi["radius_m"] == 3.0 and d.roi["points"] > 0
-        assert 100 <= d.roi["frame_points"] <= d.frame_points
+        assert d.refinement.fitness > 0.9 and d.roi.radius_m == 3.0 and d.roi.points > 0
+        assert 100 <= d.roi.frame_points <= d.frame_points
         json.dumps(r.to_dict())  # JSON-able
     assert exact >= 3
 
@@ -80,9 +80,9 @@ def test_the_region_of_interest_bounds_the_refinement(scene) -> None:
     narrow = Localizer.from_site(scene.site, LocalizeConfig(refine=RefineConfig(roi_radius_m=0.6)))
     r = narrow.localize(f)
     d = r.diagnostics
-    assert d.roi["radius_m"] == 0.6 and 100 <= d.roi["frame_points"] < 0.9 * d.frame_points
+    assert d.roi.radius_m == 0.6 and 100 <= d.roi.frame_points < 0.9 * d.frame_points
     # the map side: only map points within γ of the centre count, far fewer than in the whole room
-    assert 0 < d.roi["points"] < len(scene.site.points) / 4
+    assert 0 < d.roi.points < len(scene.site.map.points) / 4
     te, re_ = pose_errors(r.T_map_camera, T)
     assert te < 0.05 and re_ < 2.0
 
@@ -139,10 +139,12 @@ def test_invalid_frames_raise(localizer) -> None:
         localizer.localize(far)  # every depth beyond max_depth_m
 
 
-def test_unknown_label_set_is_noted(scene, localizer) -> None:
+def test_unknown_label_set_is_refused_naming_the_known_ones(scene, localizer) -> None:
     (f, T), = _views(scene, 1, seed=3)
-    r = localizer.localize(replace(f, label_set="ade20k"))
-    assert any("ade20k" in n for n in r.diagnostics.notes)
+    with pytest.raises(InvalidFrame, match=r"no label map 'ade20k'; known label sets: \['nyu40'\]"):
+        localizer.localize(replace(f, label_set="ade20k"))
+    # a frame without labels names no label set worth checking: its label_set is not looked up
+    assert localizer.localize(replace(f, labels=None, label_set="ade20k")).T_map_camera is not None
 
 
 def test_real_scene0470_renders(scene0470_site_dir, scene0470_dir, tmp_path) -> None:

@@ -21,7 +21,7 @@ def scene_and_frame():
     T = look_pose(np.array([2.0, 1.2, 1.5]), np.radians(60.0), np.radians(30.0))
     frame = render_frame(scene, T, intrinsics=CameraIntrinsics(240, 180, 216.0, 216.0, 119.5, 89.5), depth_noise_m=0.002)
     site = scene.site
-    rmap = RefineMap(site.points, site.colors / 255.0, site.class_index)
+    rmap = RefineMap(site.map.points, site.map.colors / 255.0, site.map.class_index)
     return scene, frame, T, rmap
 
 

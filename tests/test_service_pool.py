@@ -83,8 +83,8 @@ def test_a_worker_replaced_during_a_reload_loads_the_new_version(pool, envelope,
     from cadreg.site.bundle import Site
 
     site = Site.load(scene0470_site_dir)
-    site.colors = site.colors.copy()
-    site.colors[1] = 255 - site.colors[1]
+    site.map.colors = site.map.colors.copy()
+    site.map.colors[1] = 255 - site.map.colors[1]
     second = tmp_path / "scene0470"
     site.save(second)
     parts, meta = envelope

@@ -38,8 +38,8 @@ def bundles(scene0470_site_dir: Path, tmp_path_factory) -> dict[str, Path]:
     served = root / "sites" / SITE
     shutil.copytree(scene0470_site_dir, served)
     site = Site.load(scene0470_site_dir)
-    site.colors = site.colors.copy()
-    site.colors[0] = 255 - site.colors[0]
+    site.map.colors = site.map.colors.copy()
+    site.map.colors[0] = 255 - site.map.colors[0]
     second = root / "v2" / SITE
     site.save(second)
     assert _version(second) != _version(served)

@@ -59,12 +59,12 @@ def test_cad_points_sit_on_the_scanned_mesh(site, scan):
     for i, node in enumerate(site.graph.nodes):
         if node.source != "cad":
             continue
-        mine = (site.instance == i) & (site.source == 1)
+        mine = (site.map.instance == i) & (site.map.source == 1)
         assert mine.sum() == node.points > 5000  # dense: ~1 cm spacing on surfaces of 0.5–5 m²
-        d = scene.compute_distance(o3d.core.Tensor(site.points[mine])).numpy()
+        d = scene.compute_distance(o3d.core.Tensor(site.map.points[mine])).numpy()
         assert np.median(d) <= 0.07, (node.id, float(np.median(d)))
     # the build records the same check against the raw points (an upper bound of the surface distance)
-    fits = {f["id"]: f for f in site.meta["enhance"]["cads"]}
+    fits = {f["id"]: f for f in site.manifest["enhance"]["cads"]}
     assert sorted(fits) == sorted(n.id for n in site.graph.nodes if n.source == "cad")
     for f in fits.values():
         assert 0 < f["median_distance_to_scan_m"] <= 0.07 and f["raw_points_replaced"] > 100, f
@@ -75,10 +75,10 @@ def test_cad_colours_come_from_the_scan(site, scan):
     for i, node in enumerate(site.graph.nodes):
         if node.source != "cad":
             continue
-        mine = (site.instance == i) & (site.source == 1)
-        c = site.colors[mine].astype(float)
+        mine = (site.map.instance == i) & (site.map.source == 1)
+        c = site.map.colors[mine].astype(float)
         assert c.std(axis=0).min() > 5, node.id  # not one flat colour
-        _, j = tree.query(site.points[mine])
+        _, j = tree.query(site.map.points[mine])
         diff = np.abs(c - scan.colors[j]).mean()
         assert diff < 30, (node.id, diff)  # close to the raw colours they replace (0–255 scale)
 
@@ -110,13 +110,13 @@ def test_graph_edges_are_the_pairs_within_delta(site):
 
 
 def test_map_keeps_the_room_and_raw_scan(site, scan):
-    assert len(site.raw_points) > 0.9 * len(scan.points)
-    raw_kept = site.source == 0
+    assert len(site.raw.points) > 0.9 * len(scan.points)
+    raw_kept = site.map.source == 0
     # raw walls and floor are all still in the enhanced map
-    assert raw_kept.sum() > 0.6 * len(site.raw_points)
-    assert len(site.points) > len(site.raw_points)
-    assert site.meta["inputs"]["scan2cad"]["id_scan"] == "scene0470_00"
-    assert len(site.meta["inputs"]["scan"]["sha256"]) == 64
+    assert raw_kept.sum() > 0.6 * len(site.raw.points)
+    assert len(site.map.points) > len(site.raw.points)
+    assert site.manifest["inputs"]["scan2cad"]["id_scan"] == "scene0470_00"
+    assert len(site.manifest["inputs"]["scan"]["sha256"]) == 64
 
 
 def test_labels_only_build_makes_every_node_a_cluster(scene0470_dir):
@@ -130,7 +130,7 @@ def test_labels_only_build_makes_every_node_a_cluster(scene0470_dir):
     for cls, centre in README_CAD_CENTRES:
         if cls == "chair":
             assert np.min(np.linalg.norm(chairs[:, :2] - centre[:2], axis=1)) < 0.1
-    assert np.all(s.source == 0) and len(s.points) == len(s.raw_points)
+    assert np.all(s.map.source == 0) and len(s.map.points) == len(s.raw.points)
 
 
 def test_missing_cad_file_names_it(scene0470_dir, tmp_path):

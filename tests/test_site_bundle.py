@@ -8,12 +8,11 @@ import shutil
 import numpy as np
 import pytest
 
-from cadreg.errors import BundleIntegrityError, InvalidFileError
+from cadreg.errors import BundleIntegrityError, ConfigError, InvalidFileError, InvalidFrame
 from cadreg.site.build import site_from_labelled_points
 from cadreg.site.bundle import DATA_FILES, Site
 
-ARRAYS = ("points", "colors", "normals", "instance", "class_index", "source",
-          "raw_points", "raw_colors", "raw_normals", "raw_class_index")
+COLUMNS = ("points", "colors", "normals", "instance", "class_index", "source")
 
 
 def labelled_room(seed: int = 0):
@@ -48,21 +47,22 @@ def test_site_from_labelled_points_finds_the_objects(small_site):
     np.testing.assert_allclose(by_cls["chair"].centroid, [0.75, 0.75, 0.45], atol=0.03)
     np.testing.assert_allclose(by_cls["door"].centroid, [2.9, 1.25, 1.0], atol=0.03)
     assert s.graph.graph.number_of_edges() == 0  # 2.2 m apart > δ
-    assert len(s.points) == len(s.raw_points) and np.all(s.source == 0)
+    assert len(s.map.points) == len(s.raw.points) and np.all(s.map.source == 0)
     # points of a node carry its instance id; floor points carry none
     for i, n in enumerate(s.graph.nodes):
-        assert (s.instance == i).sum() == n.points
-    assert np.all(s.class_index[(s.points[:, 2] == 0) & (s.points[:, 0] < 0.45)] == -1)
-    np.testing.assert_allclose(np.linalg.norm(s.normals, axis=1), 1.0, atol=1e-5)
+        assert (s.map.instance == i).sum() == n.points
+    assert np.all(s.map.class_index[(s.map.points[:, 2] == 0) & (s.map.points[:, 0] < 0.45)] == -1)
+    np.testing.assert_allclose(np.linalg.norm(s.map.normals, axis=1), 1.0, atol=1e-5)
 
 
 def test_round_trip_is_bit_exact(small_site, tmp_path):
     small_site.save(tmp_path / "b")
     loaded = Site.load(tmp_path / "b")
-    for name in ARRAYS:
-        a, b = getattr(small_site, name), getattr(loaded, name)
-        assert a.dtype == b.dtype and a.shape == b.shape, name
-        assert a.tobytes() == b.tobytes(), name
+    for cloud in ("map", "raw"):
+        for name in COLUMNS:
+            a, b = getattr(getattr(small_site, cloud), name), getattr(getattr(loaded, cloud), name)
+            assert a.dtype == b.dtype and a.shape == b.shape, (cloud, name)
+            assert a.tobytes() == b.tobytes(), (cloud, name)
     assert loaded.site_id == "room" and loaded.version == small_site.version and len(loaded.version) == 12
     assert loaded.graph.to_dict() == small_site.graph.to_dict()
     assert loaded.classes == small_site.classes and loaded.label_maps == small_site.label_maps
@@ -80,8 +80,8 @@ def test_version_follows_content(small_site):
     again = site_from_labelled_points(pts, colors, None, labels, site_id="room", inputs={})
     assert again.version == small_site.version  # same content, same version (build time is not content)
     # an unsaved site already describes itself as its site.json will
-    assert set(again.meta["files"]) == set(DATA_FILES) and again.meta["version"] == again.version
-    assert again.meta["schema"] == "cadreg.site/1" and again.meta["counts"]["nodes"] == 2
+    assert set(again.manifest["files"]) == set(DATA_FILES) and again.manifest["version"] == again.version
+    assert again.manifest["schema"] == "cadreg.site/1" and again.manifest["counts"]["nodes"] == 2
     colors2 = colors.copy()
     colors2[0] = (1, 2, 3)
     other = site_from_labelled_points(pts, colors2, None, labels, site_id="room", inputs={})
@@ -131,7 +131,7 @@ def test_classes_for_labels(small_site):
     idx = s.classes_for_labels("nyu40", np.array([[5, 2], [8, 39]], dtype=np.uint16))
     assert [[s.class_name(int(i)) for i in row] for row in idx] == [["chair", None], ["door", "otherfurniture"]]
     assert s.class_name(int(s.classes_for_labels("shapenet", np.array([2747177]))[0])) == "otherfurniture"
-    with pytest.raises(KeyError, match="no label map"):
+    with pytest.raises(InvalidFrame, match=r"no label map 'ade20k'; known label sets: \['nyu40', 'shapenet'\]"):
         s.classes_for_labels("ade20k", np.array([1]))
 
 
@@ -142,4 +142,42 @@ def test_bad_inputs_to_site_from_labelled_points():
     with pytest.raises(ValueError, match="labels"):
         site_from_labelled_points(pts, colors, None, labels[:-1], site_id="x", inputs={})
     unlabelled = site_from_labelled_points(pts, colors, None, None, site_id="x", inputs={})
-    assert unlabelled.graph.nodes == [] and np.all(unlabelled.class_index == -1)
+    assert unlabelled.graph.nodes == [] and np.all(unlabelled.map.class_index == -1)
+
+
+def test_cloud_picks_raw_enhanced_or_both(small_site):
+    s = small_site
+    assert s.cloud("raw") is s.raw and s.cloud("enhanced") is s.map
+    both = s.cloud("both")
+    assert len(both) == len(s.raw) + len(s.map)
+    assert both.points[: len(s.raw)].tobytes() == s.raw.points.tobytes()  # raw first
+    with pytest.raises(ConfigError, match="unknown map cloud 'all'"):
+        s.cloud("all")
+
+
+def test_delta_comes_from_the_build_parameters(small_site):
+    assert small_site.edge_max_m == small_site.manifest["build_config"]["graph"]["edge_max_m"] == 1.5
+    from cadreg.config import GraphConfig, SiteBuildConfig
+
+    pts, colors, labels = labelled_room()
+    wide = site_from_labelled_points(pts, colors, None, labels, site_id="room", inputs={},
+                                     config=SiteBuildConfig(graph=GraphConfig(edge_max_m=3.0)))
+    assert wide.edge_max_m == 3.0 and wide.graph.graph.number_of_edges() == 1  # 2.2 m apart < δ now
+
+
+def test_read_manifest_checks_without_parsing(small_site, tmp_path, monkeypatch):
+    small_site.save(tmp_path / "b")
+    import cadreg.pointset as pointset
+
+    def boom(*args, **kwargs):
+        raise AssertionError("read_manifest parsed a PLY")
+
+    monkeypatch.setattr(pointset.PointSet, "from_ply_bytes", classmethod(boom))
+    manifest = Site.read_manifest(tmp_path / "b")
+    assert manifest["version"] == small_site.version and manifest["counts"]["points"] == len(small_site.map)
+    blob = bytearray((tmp_path / "b" / "raw.ply").read_bytes())
+    blob[-1] ^= 0x01
+    (tmp_path / "b" / "raw.ply").write_bytes(bytes(blob))
+    with pytest.raises(BundleIntegrityError, match="raw.ply: sha256 does not match"):
+        Site.read_manifest(tmp_path / "b")
+    assert Site.read_manifest(tmp_path / "b", verify=False)["version"] == small_site.version

@@ -9,7 +9,8 @@ import trimesh
 from cadreg.config import EnhanceConfig
 from cadreg.geometry import make_T, quat_wxyz_to_R
 from cadreg.labels import GRAPH_CLASSES
-from cadreg.site.enhance import SOURCE_CAD, SOURCE_RAW, CadPlacement, PointSet, enhance_map, transfer_colors
+from cadreg.pointset import SOURCE_CAD, SOURCE_RAW, PointSet
+from cadreg.site.enhance import CadPlacement, enhance_map, transfer_colors
 
 CLASSES = list(GRAPH_CLASSES)
 CHAIR, BAG = CLASSES.index("chair"), CLASSES.index("bag")

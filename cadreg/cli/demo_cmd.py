@@ -41,7 +41,7 @@ def _demo(out: Path, n: int, seed: int, *, keep: bool) -> int:
 
     t0 = time.perf_counter()
     site = build_demo_site(out / "demo")
-    print(f"site {site.site_id} version {site.version}: {len(site.points)} map points, "
+    print(f"site {site.site_id} version {site.version}: {len(site.map)} map points, "
           f"{len(site.graph.nodes)} objects ({sum(nd.source == 'cad' for nd in site.graph.nodes)} CAD), "
           f"{site.graph.graph.number_of_edges()} edges  [{time.perf_counter() - t0:.1f} s]")
 

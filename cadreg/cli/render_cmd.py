@@ -193,8 +193,8 @@ def _site_fuse(args: argparse.Namespace) -> int:
         site = fuse_site(frames, indices, site_id=site_id, config=config, progress=progress)
     site.save(args.out)
     report = {"site_id": site.site_id, "version": site.version, "frames": len(indices),
-              "points": int(len(site.points)), "nodes": len(site.graph.nodes), "out": str(args.out)}
+              "points": len(site.map), "nodes": len(site.graph.nodes), "out": str(args.out)}
     if check:
-        report["check"] = {"range": args.check_range, **map_accuracy(site.points, frames, check)}
+        report["check"] = {"range": args.check_range, **map_accuracy(site.map.points, frames, check)}
     print(json.dumps(report))
     return 0

@@ -33,7 +33,7 @@ def _build(args: argparse.Namespace) -> int:
         bar.close()
     site.save(args.out)
     n_cad = sum(1 for n in site.graph.nodes if n.source == "cad")
-    print(f"site {site.site_id} version {site.version}: {len(site.points)} map points ({len(site.raw_points)} raw), "
+    print(f"site {site.site_id} version {site.version}: {len(site.map)} map points ({len(site.raw)} raw), "
           f"{len(site.graph.nodes)} objects ({n_cad} CAD), {site.graph.graph.number_of_edges()} edges -> {args.out}")
     return 0
 
@@ -46,12 +46,12 @@ def site_summary(site) -> dict:
         "nodes": [{"id": n.id, "class": n.cls, "centroid": [round(float(x), 4) for x in n.centroid],
                    "source": n.source, "points": int(n.points), "cad_id": n.cad_id} for n in site.graph.nodes],
         "edges": site.graph.graph.number_of_edges(),
-        "points": int(len(site.points)),
-        "raw_points": int(len(site.raw_points)),
+        "points": len(site.map),
+        "raw_points": len(site.raw),
         "classes": list(site.classes),
         "label_sets": sorted(site.label_maps),
-        "built_at": site.meta.get("built_at"),
-        "cad_fit": list(site.meta.get("enhance", {}).get("cads", [])),
+        "built_at": site.manifest.get("built_at"),
+        "cad_fit": list(site.manifest.get("enhance", {}).get("cads", [])),
     }
 
 

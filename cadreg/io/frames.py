@@ -32,7 +32,7 @@ import numpy as np
 from PIL import Image
 
 from ..camera import CameraIntrinsics
-from ..errors import InvalidFileError, InvalidFrame
+from ..errors import InvalidArgument, InvalidFileError, InvalidFrame
 from ..frame import Frame
 from ..geometry import invert_T, nearest_rotation
 
@@ -398,7 +398,7 @@ class FramesWriter:
         self.depth_scale = float(depth_scale)
         self.label_set = label_set
         if color_format not in ("png", "jpg"):
-            raise ValueError(f"color_format must be png or jpg, got {color_format!r}")
+            raise InvalidArgument(f"color_format must be png or jpg, got {color_format!r}")
         self.color_format = color_format
         for sub in ("color", "depth", "label", "pose", "intrinsic"):
             (self.root / sub).mkdir(parents=True, exist_ok=True)

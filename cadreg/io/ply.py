@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InvalidFileError
+from ..errors import InvalidArgument, InvalidFileError
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1",
@@ -309,7 +309,7 @@ def ply_bytes(vertex: dict[str, np.ndarray], faces: np.ndarray | None = None) ->
     arrays = {k: np.asarray(a) for k, a in vertex.items()}
     for k, a in arrays.items():
         if a.shape != (n,):
-            raise ValueError(f"vertex property {k!r} has shape {a.shape}, expected ({n},)")
+            raise InvalidArgument(f"vertex property {k!r} has shape {a.shape}, expected ({n},)")
     dtype = np.dtype([(k, "<" + arrays[k].dtype.str[1:]) for k in names])
     table = np.empty(n, dtype=dtype)
     for k in names:

@@ -11,11 +11,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from itertools import combinations, permutations
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..geometry import kabsch, rotation_angle_deg
+
+if TYPE_CHECKING:  # the site bundle pulls in the whole site build; the localizer is handed a loaded Site
+    from ..site.bundle import Site
 
 
 @dataclass
@@ -33,27 +37,19 @@ class MapGraph:
     top: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (k,) highest point of the box along up, metres
 
     @classmethod
-    def from_site(cls, site, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> "MapGraph":
+    def from_site(cls, site: Site, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> "MapGraph":
+        """The nodes of the site's graph whose class the site knows; `top` along the unit vector `up`."""
         names = list(site.classes)
         nodes = [n for n in site.graph.nodes if n.cls in names]
-        tops = []
-        for n in nodes:
-            R = getattr(n, "box_R", None)
-            ext = getattr(n, "box_extent", None)
-            centre = getattr(n, "box_center", None)
-            if R is None or ext is None or centre is None:
-                tops.append(float(np.asarray(n.centroid, float) @ up))
-            else:
-                tops.append(float(np.asarray(centre, float) @ up + 0.5 * np.abs(np.asarray(R, float).T @ up) @ np.asarray(ext, float)))
-        graph = cls(
+        # Highest point of each oriented box along up: its centre plus half of each extent projected on up.
+        tops = [float(n.box_center @ up + 0.5 * np.abs(n.box_R.T @ up) @ n.box_extent) for n in nodes]
+        return cls(
             [str(n.id) for n in nodes],
             np.array([names.index(n.cls) for n in nodes], dtype=np.int64),
-            np.array([np.asarray(n.centroid, float) for n in nodes]).reshape(-1, 3),
-            np.array([np.asarray(getattr(n, "box_extent", None) if getattr(n, "box_extent", None) is not None
-                                 else np.zeros(3), float) for n in nodes]).reshape(-1, 3),
+            np.array([n.centroid for n in nodes], dtype=float).reshape(-1, 3),
+            np.array([n.box_extent for n in nodes], dtype=float).reshape(-1, 3),
             np.array(tops, dtype=float),
         )
-        return graph
 
 
 @dataclass

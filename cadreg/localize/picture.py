@@ -11,6 +11,7 @@ import numpy as np
 from ..frame import Frame
 from ..geometry import transform_points
 from ..result import LocalizationResult
+from ..site.bundle import Site
 from .points import frame_to_points, voxel_downsample
 
 
@@ -22,7 +23,7 @@ def frustum_map(T_map_camera: np.ndarray, frame: Frame, depth_m: float = 1.0) ->
     return transform_points(T_map_camera, np.vstack([np.zeros(3), rays]))
 
 
-def render_localization_png(site, frame: Frame, result: LocalizationResult, *, localizer=None, dpi: int = 150,
+def render_localization_png(site: Site, frame: Frame, result: LocalizationResult, *, localizer=None, dpi: int = 150,
                             T_true: np.ndarray | None = None) -> bytes:
     """PNG bytes: map top view, frame points (by height) at the estimated pose, matched nodes, frustum."""
     import matplotlib

@@ -13,6 +13,7 @@ import numpy as np
 import small_gicp
 from scipy.spatial import cKDTree
 
+from ..errors import InvalidArgument
 from .color_gicp import ColorGicpTarget, color_gicp, prepare_cloud, rgb_to_lab
 from .points import FramePoints, voxel_indices
 
@@ -123,20 +124,24 @@ class RefineMap:
         col = float(np.exp(-(dE / color_scale) ** 2).mean())
         return float(ok.mean()), sem, col
 
-    def coarse_align(self, source: small_gicp.PointCloud, T_init: np.ndarray, *, max_correspondence_m: float = 0.3,
-                     max_iterations: int = 20) -> np.ndarray:
-        """A cheap GICP at the coarse scale to pull a hypothesis in before it is ranked."""
-        res = small_gicp.align(self.sg_coarse, source, self.sg_coarse_tree, init_T_target_source=T_init,
+    def coarse_align(self, source: small_gicp.PointCloud, init_T_map_camera: np.ndarray, *,
+                     max_correspondence_m: float = 0.3, max_iterations: int = 20) -> np.ndarray:
+        """A cheap GICP at the coarse scale to pull a hypothesis in before it is ranked: (4, 4) T_map_camera.
+
+        source : frame points (colour-camera frame) preprocessed at the coarse voxel size."""
+        res = small_gicp.align(self.sg_coarse, source, self.sg_coarse_tree, init_T_target_source=init_T_map_camera,
                                registration_type="GICP", max_correspondence_distance=max_correspondence_m,
                                num_threads=1, max_iterations=max_iterations)
         return np.asarray(res.T_target_source)
 
-    def refine(self, points: FramePoints, T_init: np.ndarray, *, method: str = "small_gicp", epsilon: float = 1e-3,
-               source_voxel_m: float = 0.04, max_correspondence_m: float = 0.1, max_iterations: int = 30) -> RefineOutcome:
-        """Refine T_map_camera from T_init with the frame's points (colour-camera frame)."""
+    def refine(self, points: FramePoints, init_T_map_camera: np.ndarray, *, method: str = "small_gicp",
+               epsilon: float = 1e-3, source_voxel_m: float = 0.04, max_correspondence_m: float = 0.1,
+               max_iterations: int = 30) -> RefineOutcome:
+        """Refine T_map_camera from `init_T_map_camera` with the frame's points (colour-camera frame)."""
+        T_init = np.asarray(init_T_map_camera, dtype=np.float64)
         if method == "small_gicp":
             src, _ = small_gicp.preprocess_points(points.xyz, source_voxel_m, num_neighbors=10)
-            T = np.asarray(T_init, dtype=np.float64)
+            T = T_init
             # Wide then narrow correspondences: the wide pass pulls in a start some centimetres off, the narrow
             # one keeps stray points out of the final estimate.
             for corr in (2.5 * max_correspondence_m, max_correspondence_m):
@@ -171,4 +176,4 @@ class RefineMap:
                 T = np.asarray(res.transformation)
                 iterations += max_iterations
             return RefineOutcome(T, None, iterations, converged, method)
-        raise ValueError(f"unknown refinement method {method!r}; choose one of {REFINE_METHODS}")
+        raise InvalidArgument(f"unknown refinement method {method!r}; choose one of {REFINE_METHODS}")

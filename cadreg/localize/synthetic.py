@@ -1,38 +1,26 @@
-"""Seeded synthetic scenes for tests: a textured box room with box-shaped labelled objects, a site-like object
-built from it, and frames rendered from it at known poses (Open3D ray casting).
+"""Seeded synthetic scenes for tests: a textured box room with box-shaped labelled objects, the real `Site` built
+from it (map points sampled on its surfaces, one cluster node per object, the semantic graph), and frames rendered
+from it at known poses (Open3D ray casting).
 
-Only what the localizer reads is modelled (points, colours, normals, classes, graph nodes, label map).
 Labels follow NYU40 ids: 1 wall, 2 floor, 5 chair, 7 table, 39 otherfurniture.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..camera import CameraIntrinsics
+from ..config import SiteBuildConfig
 from ..frame import Frame
 from ..geometry import invert_T, make_T
+from ..pointset import PointSet
+from ..site.bundle import Site
+from ..site.graph import ObjectNode, build_graph
 
 CLASSES = ["chair", "otherfurniture", "table"]
 _LABEL_OF_CLASS = {"chair": 5, "otherfurniture": 39, "table": 7}
-
-
-@dataclass
-class SyntheticNode:
-    id: str
-    cls: str
-    centroid: np.ndarray
-    box_center: np.ndarray
-    box_extent: np.ndarray
-    box_R: np.ndarray = field(default_factory=lambda: np.eye(3))
-    source: str = "cluster"
-
-
-@dataclass
-class SyntheticGraph:
-    nodes: list[SyntheticNode]
 
 
 @dataclass
@@ -43,34 +31,7 @@ class SyntheticScene:
     triangles: np.ndarray  # (t, 3) int32
     tri_label: np.ndarray  # (t,) int NYU40 label
     tri_color: np.ndarray  # (t, 3) float base colour in [0, 1]
-    site: "SyntheticSite"
-
-
-@dataclass
-class SyntheticSite:
-    site_id: str
-    version: str
-    points: np.ndarray
-    colors: np.ndarray
-    normals: np.ndarray
-    class_index: np.ndarray
-    graph: SyntheticGraph
-    classes: list[str]
-    raw_points: np.ndarray | None = None
-    raw_colors: np.ndarray | None = None
-    raw_normals: np.ndarray | None = None
-    raw_class_index: np.ndarray | None = None
-    label_maps: dict = field(default_factory=lambda: {"nyu40": {v: k for k, v in _LABEL_OF_CLASS.items()}})
-
-    def classes_for_labels(self, label_set: str, labels: np.ndarray) -> np.ndarray:
-        if label_set not in self.label_maps:
-            raise KeyError(label_set)
-        lut = self.label_maps[label_set]
-        labels = np.asarray(labels)
-        out = np.full(labels.shape, -1, dtype=np.int16)
-        for lid, name in lut.items():
-            out[labels == lid] = self.classes.index(name)
-        return out
+    site: Site
 
 
 def texture(points: np.ndarray, base: np.ndarray) -> np.ndarray:
@@ -86,13 +47,13 @@ def make_scene(seed: int = 0, *, size_m: tuple[float, float, float] = (5.0, 4.0,
 
     rng = np.random.default_rng(seed)
     W, D, H = size_m
-    meshes: list[tuple[o3d.geometry.TriangleMesh, int, np.ndarray, str | None]] = []
+    meshes: list[tuple[o3d.geometry.TriangleMesh, int, np.ndarray, int]] = []  # mesh, label, colour, object
 
-    def box(w, d, h, T, label, colour, cls=None):
+    def box(w, d, h, T, label, colour, instance=-1):
         m = o3d.geometry.TriangleMesh.create_box(w, d, h)
         m.translate((-w / 2, -d / 2, -h / 2))
         m.transform(T)
-        meshes.append((m, label, np.asarray(colour, float), cls))
+        meshes.append((m, label, np.asarray(colour, float), instance))
 
     # Thin slabs make a closed room whose inner faces are the walls.
     box(W, D, 0.1, make_T(t=[W / 2, D / 2, -0.05]), 2, [0.55, 0.5, 0.45])
@@ -100,9 +61,9 @@ def make_scene(seed: int = 0, *, size_m: tuple[float, float, float] = (5.0, 4.0,
     box(W, 0.1, H, make_T(t=[W / 2, D + 0.05, H / 2]), 1, [0.75, 0.8, 0.85])
     box(0.1, D, H, make_T(t=[-0.05, D / 2, H / 2]), 1, [0.85, 0.75, 0.7])
     box(0.1, D, H, make_T(t=[W + 0.05, D / 2, H / 2]), 1, [0.7, 0.85, 0.7])
-    nodes = []
+    objects: list[tuple[str, np.ndarray, np.ndarray, np.ndarray]] = []  # class, centre, extent, R
     placed: list[np.ndarray] = []
-    while len(nodes) < n_objects:
+    while len(objects) < n_objects:
         cls = CLASSES[int(rng.integers(len(CLASSES)))]
         w, d = rng.uniform(0.4, 0.9, size=2)
         h = {"chair": rng.uniform(0.8, 1.0), "table": rng.uniform(0.7, 0.8), "otherfurniture": rng.uniform(0.3, 1.2)}[cls]
@@ -111,19 +72,20 @@ def make_scene(seed: int = 0, *, size_m: tuple[float, float, float] = (5.0, 4.0,
             continue
         yaw = rng.uniform(0, np.pi)
         R = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
-        box(w, d, h, make_T(R, c), _LABEL_OF_CLASS[cls], rng.uniform(0.15, 0.9, size=3), cls)
+        box(w, d, h, make_T(R, c), _LABEL_OF_CLASS[cls], rng.uniform(0.15, 0.9, size=3), len(objects))
         placed.append(c)
-        nodes.append(SyntheticNode(f"obj-{len(nodes)}", cls, c.copy(), c.copy(), np.array([w, d, h]), R))
-    verts, tris, tri_label, tri_color = [], [], [], []
+        objects.append((cls, c, np.array([w, d, h]), R))
+    verts, tris, tri_label, tri_color, tri_object = [], [], [], [], []
     offset = 0
-    for m, label, colour, _ in meshes:
+    for m, label, colour, instance in meshes:
         v = np.asarray(m.vertices)
         t = np.asarray(m.triangles) + offset
         verts.append(v); tris.append(t)
         tri_label.append(np.full(len(t), label)); tri_color.append(np.tile(colour, (len(t), 1)))
+        tri_object.append(np.full(len(t), instance))
         offset += len(v)
     V, T = np.vstack(verts), np.vstack(tris).astype(np.int32)
-    tri_label_a, tri_color_a = np.concatenate(tri_label), np.vstack(tri_color)
+    tri_label_a, tri_color_a, tri_object_a = np.concatenate(tri_label), np.vstack(tri_color), np.concatenate(tri_object)
     # Map points: uniform surface samples with the triangle's label and the procedural colour.
     areas = 0.5 * np.linalg.norm(np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]]), axis=1)
     tri = rng.choice(len(T), size=map_points, p=areas / areas.sum())
@@ -136,9 +98,16 @@ def make_scene(seed: int = 0, *, size_m: tuple[float, float, float] = (5.0, 4.0,
     col = (texture(P, tri_color_a[tri]) * 255).astype(np.uint8)
     lut = {v: CLASSES.index(k) for k, v in _LABEL_OF_CLASS.items()}
     cls_idx = np.array([lut.get(int(l), -1) for l in tri_label_a[tri]], dtype=np.int16)
-    site = SyntheticSite(f"synthetic-{seed}", "0", P.astype(np.float32), col, N.astype(np.float32), cls_idx,
-                         SyntheticGraph(nodes), list(CLASSES))
-    site.raw_points, site.raw_colors, site.raw_normals, site.raw_class_index = site.points, site.colors, site.normals, cls_idx
+    instance = tri_object_a[tri].astype(np.int32)
+    cloud = PointSet(P, col, N, instance, cls_idx, np.zeros(map_points, np.uint8))
+    nodes = [ObjectNode(f"obj-{i}", cls, c.copy(), c.copy(), ext, R, source="cluster", cad_id=None,
+                        points=int((instance == i).sum()))
+             for i, (cls, c, ext, R) in enumerate(objects)]
+    build = SiteBuildConfig()
+    site = Site(site_id=f"synthetic-{seed}", version="", manifest={"build_config": build.model_dump(mode="json")},
+                map=cloud, raw=cloud, graph=build_graph(nodes, build.graph.edge_max_m), classes=list(CLASSES),
+                label_maps={"nyu40": {v: k for k, v in _LABEL_OF_CLASS.items()}})
+    site.refresh_version()
     return SyntheticScene(V, T, tri_label_a, tri_color_a, site)
 
 
@@ -193,4 +162,4 @@ def render_frame(scene: SyntheticScene, T_map_camera: np.ndarray, *, intrinsics:
                  T_color_depth=T_cd, frame_id="synthetic")
 
 
-__all__ = ["SyntheticScene", "SyntheticSite", "invert_T", "look_pose", "make_scene", "render_frame"]
+__all__ = ["SyntheticScene", "invert_T", "look_pose", "make_scene", "render_frame"]

@@ -15,8 +15,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from ..errors import InvalidFileError
+from ..errors import InvalidArgument, InvalidFileError
 from ..labels import NYU40, STRUCTURE_CLASSES
+from ..site.bundle import Site
 
 
 def structure_label_ids(label_set: str = "nyu40") -> frozenset[int]:
@@ -45,17 +46,17 @@ class LabelledMesh:
         self.colors = np.asarray(self.colors, dtype=np.uint8)
         n = len(self.vertices)
         if self.vertices.ndim != 2 or self.vertices.shape[1] != 3 or n == 0:
-            raise ValueError(f"vertices must be (n, 3), got {self.vertices.shape}")
+            raise InvalidArgument(f"vertices must be (n, 3), got {self.vertices.shape}")
         if self.faces.ndim != 2 or self.faces.shape[1] != 3 or len(self.faces) == 0:
-            raise ValueError(f"faces must be (m, 3) with m > 0, got {self.faces.shape}")
+            raise InvalidArgument(f"faces must be (m, 3) with m > 0, got {self.faces.shape}")
         if self.faces.min() < 0 or self.faces.max() >= n:
-            raise ValueError("face indices out of range")
+            raise InvalidArgument("face indices out of range")
         if self.colors.shape != (n, 3):
-            raise ValueError(f"colors must be ({n}, 3), got {self.colors.shape}")
+            raise InvalidArgument(f"colors must be ({n}, 3), got {self.colors.shape}")
         if self.labels is not None:
             self.labels = np.asarray(self.labels).astype(np.uint16)
             if self.labels.shape != (n,):
-                raise ValueError(f"labels must be ({n},), got {self.labels.shape}")
+                raise InvalidArgument(f"labels must be ({n},), got {self.labels.shape}")
             if self.instances is None:
                 self.instances = object_instances(self.faces, self.labels, structure_label_ids(self.label_set))
         if self.instances is not None:
@@ -103,7 +104,7 @@ def object_instances(faces: np.ndarray, labels: np.ndarray, structure: frozenset
     return out
 
 
-def mesh_from_site(site, *, poisson_depth: int = 8, trim_quantile: float = 0.03) -> LabelledMesh:
+def mesh_from_site(site: Site, *, poisson_depth: int = 8, trim_quantile: float = 0.03) -> LabelledMesh:
     """A renderable mesh of a site whose source mesh is not at hand (fused sites, bundles copied alone).
 
     Screened Poisson reconstruction (Open3D) of the site's raw scan points with their normals and colours; vertices
@@ -115,10 +116,11 @@ def mesh_from_site(site, *, poisson_depth: int = 8, trim_quantile: float = 0.03)
     import open3d as o3d
     from scipy.spatial import cKDTree
 
-    pts = np.asarray(site.raw_points, dtype=np.float64)
+    raw = site.cloud("raw")
+    pts = raw.points.astype(np.float64)
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-    pcd.colors = o3d.utility.Vector3dVector(np.asarray(site.raw_colors, dtype=np.float64) / 255.0)
-    pcd.normals = o3d.utility.Vector3dVector(np.asarray(site.raw_normals, dtype=np.float64))
+    pcd.colors = o3d.utility.Vector3dVector(raw.rgb01())
+    pcd.normals = o3d.utility.Vector3dVector(raw.normals.astype(np.float64))
     mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=poisson_depth, n_threads=1)
     density = np.asarray(density)
     lo, hi = pts.min(axis=0) - 0.02, pts.max(axis=0) + 0.02
@@ -129,7 +131,7 @@ def mesh_from_site(site, *, poisson_depth: int = 8, trim_quantile: float = 0.03)
     v = np.asarray(mesh.vertices)
     colors = np.clip(np.rint(np.asarray(mesh.vertex_colors) * 255.0), 0, 255).astype(np.uint8)
     _, nearest = cKDTree(pts).query(v)
-    cls = np.asarray(site.raw_class_index)[nearest]
+    cls = raw.class_index[nearest]
     nyu = site.label_maps.get("nyu40", {})
     first_id: dict[str, int] = {}
     for label_id, name in sorted(nyu.items()):

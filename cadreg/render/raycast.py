@@ -14,6 +14,7 @@ import open3d as o3d
 
 from ..camera import CameraIntrinsics
 from ..config import NoiseConfig, RenderConfig
+from ..errors import InvalidArgument
 from ..frame import Frame
 from ..geometry import make_T
 from .mesh import LabelledMesh
@@ -147,7 +148,7 @@ class MeshRenderer:
         color = cview.color
         if noise is not None:
             if rng is None:
-                raise ValueError("noise needs a seeded numpy Generator")
+                raise InvalidArgument("noise needs a seeded numpy Generator")
             z = apply_depth_noise(z, dview.cos_incidence, rng, noise)
             color = apply_color_noise(color, rng, noise.color_sigma)
         depth = np.clip(np.rint(z * depth_scale), 0, 65535).astype(np.uint16)

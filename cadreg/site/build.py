@@ -18,13 +18,15 @@ import numpy as np
 
 from .. import __version__
 from ..config import SiteBuildConfig
+from ..errors import InvalidArgument
 from ..io.bundle_files import sha256_file
 from ..io.cad import cad_model_path, load_cad_mesh
 from ..io.ply import read_scan
 from ..io.scan2cad import read_scan2cad, select_scan
 from ..labels import GRAPH_CLASSES, NYU40, STRUCTURE_CLASSES, default_label_maps, labels_to_class_index, synset_class
+from ..pointset import SOURCE_RAW, PointSet
 from .bundle import Site
-from .enhance import SOURCE_RAW, CadPlacement, EnhancedMap, PointSet, enhance_map
+from .enhance import CadPlacement, EnhancedMap, enhance_map
 from .graph import ObjectNode, build_graph
 from .objects import aabb_center, classwise_clusters, merge_stacked, points_in_box, upright_box
 
@@ -128,13 +130,8 @@ def _assemble(
         "enhance": {"cad_models": len(placements), "raw_points_replaced": enhanced.removed_raw,
                     "cads": enhanced.cad_fit},
     }
-    site = Site(
-        site_id=site_id, version="", meta=meta,
-        points=m.points, colors=m.colors, normals=m.normals, instance=m.instance, class_index=m.class_index,
-        source=m.source,
-        raw_points=raw.points, raw_colors=raw.colors, raw_normals=raw.normals, raw_class_index=raw.class_index,
-        graph=graph, classes=classes, label_maps=default_label_maps(),
-    )
+    site = Site(site_id=site_id, version="", manifest=meta, map=m, raw=raw, graph=graph, classes=classes,
+                label_maps=default_label_maps())
     site.refresh_version()
     return site
 
@@ -147,12 +144,10 @@ def _raw_pointset(points, colors, normals, labels, label_set: str, voxel_m: floa
     lab = None if labels is None else np.asarray(labels)[keep]
     maps = default_label_maps()
     if lab is not None and label_set not in maps:
-        raise KeyError(f"unknown label set {label_set!r} (known: {sorted(maps)})")
+        raise InvalidArgument(f"unknown label set {label_set!r} (known: {sorted(maps)})")
     cls_idx = (np.full(len(pts), -1, np.int16) if lab is None
                else labels_to_class_index(lab, maps[label_set], GRAPH_CLASSES))
-    n = len(pts)
-    raw = PointSet(pts, cols, nrm, np.full(n, -1, np.int32), cls_idx, np.full(n, SOURCE_RAW, np.uint8))
-    return raw, _structure_mask(lab, label_set, n)
+    return PointSet.scanned(pts, cols, nrm, cls_idx), _structure_mask(lab, label_set, len(pts))
 
 
 def site_from_labelled_points(
@@ -174,11 +169,11 @@ def site_from_labelled_points(
     """
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
-        raise ValueError(f"points must be (N, 3) with N > 0, got {points.shape}")
+        raise InvalidArgument(f"points must be (N, 3) with N > 0, got {points.shape}")
     if np.asarray(colors).shape != points.shape:
-        raise ValueError(f"colors must be {points.shape}, got {np.asarray(colors).shape}")
+        raise InvalidArgument(f"colors must be {points.shape}, got {np.asarray(colors).shape}")
     if labels is not None and np.asarray(labels).shape != (len(points),):
-        raise ValueError(f"labels must be ({len(points)},), got {np.asarray(labels).shape}")
+        raise InvalidArgument(f"labels must be ({len(points)},), got {np.asarray(labels).shape}")
     total = 10
     raw, structure = _raw_pointset(points, colors, normals, labels, label_set, config.enhance.raw_voxel_m)
     if progress is not None:
@@ -203,7 +198,7 @@ def build_site(
     """
     scan_ply = Path(scan_ply)
     if scan2cad_json is not None and cad_root is None:
-        raise ValueError("scan2cad_json needs cad_root (the CAD library)")
+        raise InvalidArgument("scan2cad_json needs cad_root (the CAD library)")
     total = 12
     scan = read_scan(scan_ply, labels_ply)
     inputs: dict[str, Any] = {"scan": {"path": str(scan_ply), "sha256": sha256_file(scan_ply)}}

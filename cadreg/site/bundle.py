@@ -4,9 +4,9 @@ Bundle layout (DESIGN §3), self-describing, no pickle:
 
     site.json   schema, site id, version, build time, source inputs (with sha256), build parameters, classes,
                 label maps, and the sha256 of every other file
-    map.ply     enhanced map: x y z (float32), red green blue (uint8), nx ny nz (float32), instance (int32),
-                class (int16, index into `classes`, -1 none), source (uint8, 0 raw, 1 CAD)
-    raw.ply     the raw scan points kept for refinement, same columns (instance -1, source 0)
+    map.ply     the enhanced map, a `PointSet` (cadreg/pointset.py: x y z, red green blue, nx ny nz, instance,
+                class as an index into `classes`, source)
+    raw.ply     the raw scan points kept for refinement, the same columns (instance -1, source raw)
     graph.json  nodes and edges of the semantic graph
 
 `version` is the first 12 hex digits of the sha256 over the sorted "name:sha256" lines of map.ply, raw.ply and
@@ -23,43 +23,16 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import BundleIntegrityError, InvalidFileError
+from ..config import GraphConfig
+from ..errors import BundleIntegrityError, ConfigError, InvalidFileError, InvalidFrame
 from ..io.bundle_files import read_bytes, read_json, sha256_bytes, write_bundle_dir
-from ..io.ply import parse_ply, ply_bytes
 from ..labels import labels_to_class_index
+from ..pointset import PointSet
 from .graph import ObjectNode, SemanticGraph  # noqa: F401  (ObjectNode is part of this module's API)
 
 SCHEMA = "cadreg.site/1"
 DATA_FILES = ("map.ply", "raw.ply", "graph.json")
-_COLUMNS = ("x", "y", "z", "red", "green", "blue", "nx", "ny", "nz", "instance", "class", "source")
-
-
-def _cloud_columns(points, colors, normals, instance, class_index, source) -> dict[str, np.ndarray]:
-    p = np.asarray(points, np.float32)
-    c = np.asarray(colors, np.uint8)
-    n = np.asarray(normals, np.float32)
-    return {
-        "x": p[:, 0], "y": p[:, 1], "z": p[:, 2],
-        "red": c[:, 0], "green": c[:, 1], "blue": c[:, 2],
-        "nx": n[:, 0], "ny": n[:, 1], "nz": n[:, 2],
-        "instance": np.asarray(instance, np.int32), "class": np.asarray(class_index, np.int16),
-        "source": np.asarray(source, np.uint8),
-    }
-
-
-def _cloud_from_ply(blob: bytes, path: Path) -> dict[str, np.ndarray]:
-    v = parse_ply(blob, path).vertex
-    missing = [c for c in _COLUMNS if c not in v]
-    if missing:
-        raise InvalidFileError(path, f"missing vertex columns {missing}")
-    return {
-        "points": np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32),
-        "colors": np.stack([v["red"], v["green"], v["blue"]], axis=1).astype(np.uint8),
-        "normals": np.stack([v["nx"], v["ny"], v["nz"]], axis=1).astype(np.float32),
-        "instance": v["instance"].astype(np.int32),
-        "class_index": v["class"].astype(np.int16),
-        "source": v["source"].astype(np.uint8),
-    }
+CLOUDS = ("raw", "enhanced", "both")
 
 
 def version_of(file_hashes: dict[str, str]) -> str:
@@ -72,42 +45,49 @@ def version_of(file_hashes: dict[str, str]) -> str:
 class Site:
     """A site, in memory.
 
-    points (N, 3) float32, map frame, metres; colors (N, 3) uint8 RGB; normals (N, 3) float32 unit;
-    instance (N,) int32 (-1 none; CAD instance i is node "cad-<i>"); class_index (N,) int16 index into `classes`
-    (-1 none/structure); source (N,) uint8 (0 raw, 1 CAD) — the enhanced map.
-    raw_points (M, 3) float32, raw_colors (M, 3) uint8, raw_normals (M, 3) float32, raw_class_index (M,) int16 —
-    the scan as it was, down-sampled.
-    graph : the semantic graph; classes : graph class names; label_maps : {label set: {label id: class}}.
-    meta : the parsed site.json (for a site not yet saved: what site.json will hold).
+    map : the enhanced map (kept raw points, then the points sampled on each CAD; `PointSet` columns).
+    raw : the scan as it was, down-sampled (instance -1, source raw).
+    graph : the semantic graph; classes : graph class names (what `class_index` indexes);
+    label_maps : {label set: {label id: class}}.
+    manifest : the parsed site.json (for a site not yet saved: what site.json will hold).
     """
 
     site_id: str
     version: str
-    meta: dict[str, Any]
-    points: np.ndarray
-    colors: np.ndarray
-    normals: np.ndarray
-    instance: np.ndarray
-    class_index: np.ndarray
-    source: np.ndarray
-    raw_points: np.ndarray
-    raw_colors: np.ndarray
-    raw_normals: np.ndarray
-    raw_class_index: np.ndarray
+    manifest: dict[str, Any]
+    map: PointSet
+    raw: PointSet
     graph: SemanticGraph
     classes: list[str]
     label_maps: dict[str, dict[int, str]] = field(default_factory=dict)
 
     # --- queries -------------------------------------------------------------------------------------------------
 
+    def cloud(self, which: str) -> PointSet:
+        """The raw scan, the enhanced map, or both (raw first). A site that kept no raw points answers every
+        request with the enhanced map. Raises ConfigError for another name."""
+        if which not in CLOUDS:
+            raise ConfigError(f"unknown map cloud {which!r}; choose one of {CLOUDS}")
+        if which == "enhanced" or len(self.raw) == 0:
+            return self.map
+        return self.raw if which == "raw" else PointSet.concat([self.raw, self.map])
+
+    @property
+    def edge_max_m(self) -> float:
+        """δ of this site's graph (its build parameters): scan graphs must use the same to be comparable."""
+        build = self.manifest.get("build_config", {}).get("graph", {})
+        return float(build.get("edge_max_m", GraphConfig().edge_max_m))
+
     def classes_for_labels(self, label_set: str, labels: np.ndarray) -> np.ndarray:
         """Label ids in `label_set` -> class indices into `classes`.
 
         labels : (...) integer array. Returns the same shape, int16, -1 = none/structure/unknown id.
-        Raises KeyError for a label set this site has no map for.
+        Raises InvalidFrame naming the known label sets for a label set this site has no map for.
         """
         if label_set not in self.label_maps:
-            raise KeyError(f"site {self.site_id!r} has no label map {label_set!r} (has {sorted(self.label_maps)})")
+            known = sorted(self.label_maps)
+            raise InvalidFrame(f"site {self.site_id!r} has no label map {label_set!r}; known label sets: {known}",
+                               detail={"label_set": label_set, "known": known})
         return labels_to_class_index(labels, self.label_maps[label_set], self.classes)
 
     def class_name(self, index: int) -> str | None:
@@ -117,23 +97,19 @@ class Site:
 
     def encode_data_files(self) -> dict[str, bytes]:
         """The bytes of map.ply, raw.ply and graph.json (deterministic: same content, same bytes)."""
-        raw_n = len(self.raw_points)
         return {
-            "map.ply": ply_bytes(_cloud_columns(self.points, self.colors, self.normals, self.instance,
-                                                self.class_index, self.source)),
-            "raw.ply": ply_bytes(_cloud_columns(self.raw_points, self.raw_colors, self.raw_normals,
-                                                np.full(raw_n, -1, np.int32), self.raw_class_index,
-                                                np.zeros(raw_n, np.uint8))),
+            "map.ply": self.map.to_ply_bytes(),
+            "raw.ply": self.raw.to_ply_bytes(),
             "graph.json": json.dumps(self.graph.to_dict(), indent=1, sort_keys=True).encode(),
         }
 
     def refresh_version(self) -> dict[str, bytes]:
-        """Recompute `version` and bring `meta` up to date with the content (what site.json will hold: schema,
+        """Recompute `version` and bring `manifest` up to date with the content (what site.json will hold: schema,
         site id, version, file hashes, classes, label maps, counts). Returns the encoded data files."""
         files = self.encode_data_files()
         hashes = {k: sha256_bytes(v) for k, v in files.items()}
         self.version = version_of(hashes)
-        meta = dict(self.meta)
+        meta = dict(self.manifest)
         meta.update({
             "schema": SCHEMA,
             "site_id": self.site_id,
@@ -141,16 +117,16 @@ class Site:
             "files": hashes,
             "classes": list(self.classes),
             "label_maps": {k: {str(i): c for i, c in sorted(v.items())} for k, v in self.label_maps.items()},
-            "counts": {"points": int(len(self.points)), "raw_points": int(len(self.raw_points)),
+            "counts": {"points": len(self.map), "raw_points": len(self.raw),
                        "nodes": len(self.graph.nodes), "edges": self.graph.graph.number_of_edges()},
         })
-        self.meta = meta
+        self.manifest = meta
         return files
 
     def save(self, out_dir: str | Path) -> None:
         """Write the bundle into `out_dir` (created if needed; existing bundle files are replaced)."""
         files = self.refresh_version()
-        files["site.json"] = json.dumps(self.meta, indent=1, sort_keys=True).encode()
+        files["site.json"] = json.dumps(self.manifest, indent=1, sort_keys=True).encode()
         write_bundle_dir(out_dir, files)
 
     @staticmethod
@@ -168,8 +144,8 @@ class Site:
         root = Path(site_dir)
         meta_path = root / "site.json"
         meta, blobs = _read_checked(root, verify=True)
-        m = _cloud_from_ply(blobs["map.ply"], root / "map.ply")
-        r = _cloud_from_ply(blobs["raw.ply"], root / "raw.ply")
+        enhanced = PointSet.from_ply_bytes(blobs["map.ply"], root / "map.ply")
+        raw = PointSet.from_ply_bytes(blobs["raw.ply"], root / "raw.ply")
         try:
             graph = SemanticGraph.from_dict(json.loads(blobs["graph.json"]))
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
@@ -179,17 +155,11 @@ class Site:
             classes = [str(c) for c in meta["classes"]]
         except (TypeError, ValueError, AttributeError) as exc:
             raise InvalidFileError(meta_path, f"malformed label_maps or classes: {exc!r}") from exc
-        bad_class = (m["class_index"] >= len(classes)).any() or (r["class_index"] >= len(classes)).any()
-        if bad_class:
-            raise InvalidFileError(root / "map.ply", f"class indices beyond the {len(classes)} classes of site.json")
-        return cls(
-            site_id=str(meta["site_id"]), version=str(meta["version"]), meta=meta,
-            points=m["points"], colors=m["colors"], normals=m["normals"], instance=m["instance"],
-            class_index=m["class_index"], source=m["source"],
-            raw_points=r["points"], raw_colors=r["colors"], raw_normals=r["normals"],
-            raw_class_index=r["class_index"],
-            graph=graph, classes=classes, label_maps=label_maps,
-        )
+        for name, cloud in (("map.ply", enhanced), ("raw.ply", raw)):
+            if (cloud.class_index >= len(classes)).any():
+                raise InvalidFileError(root / name, f"class indices beyond the {len(classes)} classes of site.json")
+        return cls(site_id=str(meta["site_id"]), version=str(meta["version"]), manifest=meta, map=enhanced, raw=raw,
+                   graph=graph, classes=classes, label_maps=label_maps)
 
 
 def _read_checked(root: Path, *, verify: bool) -> tuple[dict[str, Any], dict[str, bytes]]:

@@ -28,6 +28,7 @@ import numpy as np
 import trimesh
 
 from ..config import SiteBuildConfig
+from ..errors import InvalidArgument
 from ..geometry import R_to_quat_wxyz, make_T
 from ..io.bundle_files import write_bundle_dir
 from ..io.ply import ply_bytes
@@ -151,7 +152,7 @@ def furniture_mesh(model: str) -> trimesh.Trimesh:
         parts.append(_box((L, 0.2, 0.45), (0, -D / 2 + 0.1, 0.42 + 0.225)))
         parts += [_box((0.18, D, 0.25), (sx * (L / 2 - 0.09), 0, 0.42 + 0.125)) for sx in (-1, 1)]
     else:
-        raise ValueError(f"unknown demo model {model!r}")
+        raise InvalidArgument(f"unknown demo model {model!r}")
     return trimesh.util.concatenate(parts)
 
 

@@ -14,12 +14,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..config import EnhanceConfig
+from ..pointset import SOURCE_CAD, PointSet
 from .graph import ObjectNode
 from .objects import aabb_center, affine_box, points_in_box
-
-SOURCE_RAW = 0
-SOURCE_CAD = 1
-
 
 @dataclass
 class CadPlacement:
@@ -34,32 +31,6 @@ class CadPlacement:
     A_scan_cad: np.ndarray
     cls: str
     cad_id: str
-
-
-@dataclass
-class PointSet:
-    """Map points, all (N, ...) aligned: points (N, 3) float32 metres map frame; colors (N, 3) uint8 RGB;
-    normals (N, 3) float32 unit; instance (N,) int32 (-1 none); class_index (N,) int16 (-1 none);
-    source (N,) uint8 (0 raw scan, 1 CAD)."""
-
-    points: np.ndarray
-    colors: np.ndarray
-    normals: np.ndarray
-    instance: np.ndarray
-    class_index: np.ndarray
-    source: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.points)
-
-    def take(self, idx: np.ndarray) -> "PointSet":
-        return PointSet(*(a[idx] for a in (self.points, self.colors, self.normals, self.instance,
-                                             self.class_index, self.source)))
-
-    @staticmethod
-    def concat(parts: list["PointSet"]) -> "PointSet":
-        return PointSet(*(np.concatenate([getattr(p, f) for p in parts]) for f in
-                          ("points", "colors", "normals", "instance", "class_index", "source")))
 
 
 @dataclass

@@ -33,12 +33,12 @@ def draw_site_top_view(ax, site: Site, *, max_points: int = _MAX_DRAWN_POINTS, s
     markers (CAD: filled squares, cluster: hollow circles) labelled "<class>", edges are thin lines.
     """
     rng = np.random.default_rng(seed)
-    n = len(site.points)
+    n = len(site.map)
     idx = rng.choice(n, size=min(n, max_points), replace=False) if n > max_points else np.arange(n)
     # draw low points first so that a table top covers the floor under it
-    idx = idx[np.argsort(site.points[idx, 2], kind="stable")]
-    p = site.points[idx]
-    c = site.class_index[idx]
+    idx = idx[np.argsort(site.map.points[idx, 2], kind="stable")]
+    p = site.map.points[idx]
+    c = site.map.class_index[idx]
     palette = class_colors(len(site.classes))
     plain = c < 0
     ax.scatter(p[plain, 0], p[plain, 1], s=0.3, c=[(0.72, 0.72, 0.72)], linewidths=0, rasterized=True)

@@ -1,0 +1,130 @@
+"""The values that travel between the localizer's stages, its stage timer and its confidence.
+
+    scan (points, clusters, up)  ->  Scan
+    hypotheses (graph, prior)    ->  Hypotheses (match.py)
+    verify (coarse GICP, fallback) -> [Candidate], best first
+    refine (ROI, contenders)     ->  Choice
+    result (status, confidence, diagnostics)
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..result import Hypothesis
+from .cluster import ScanCluster
+from .gravity import Floor
+from .points import FramePoints
+from .refine import RefineOutcome
+
+# Stages reported to a `progress(done, total)` callback, in order; "fallback" is timed but runs only sometimes.
+PROGRESS_STAGES = ("points", "cluster", "gravity", "match", "verify", "refine")
+
+
+@dataclass
+class Scan:
+    """What one frame shows, colour-camera frame (OpenCV axes), metres.
+
+    points : every `pixel_stride`-th valid depth pixel with colour and label.
+    down : `points` voxel-down-sampled (FrameConfig.voxel_size_m): what is clustered and scored.
+    class_index : (len(down),) int64 graph class per down-sampled point, -1 none.
+    clusters : class-wise clusters of `down` (the scan graph's nodes).
+    floor : up direction (and camera height) from the floor, the client's gravity or the frame's surfaces; None
+        when none could be found.
+    score_xyz : (≤ score_points, 3) float64 sample of `down` for the distance-field check.
+    fit_xyz, fit_rgb, fit_cls : a sample of `down` (≤ fit_points): positions, colours in [0, 1], class index, for
+        the label and colour agreement that ranks coarse-aligned candidates.
+    check_xyz : (≤ check_points, 3) float64 sample of `points` for the final fitness.
+    """
+
+    points: FramePoints
+    down: FramePoints
+    class_index: np.ndarray
+    clusters: list[ScanCluster]
+    floor: Floor | None
+    score_xyz: np.ndarray
+    fit_xyz: np.ndarray
+    fit_rgb: np.ndarray
+    fit_cls: np.ndarray
+    check_xyz: np.ndarray
+
+
+@dataclass
+class Candidate:
+    """A hypothesis after the coarse GICP of the verify stage.
+
+    T_map_camera : (4, 4) float64, colour camera -> map, metres.
+    score : geometric fitness weighted by label and colour agreement with the map, in [0, 1].
+    hypothesis : what the result reports of it (its `T_map_camera` is this one).
+    assignment : (scan objects,) int64 index into the map graph's nodes per scan object, -1 none; empty for
+        hypotheses that did not come from the graph (fallback, prior).
+    """
+
+    T_map_camera: np.ndarray
+    score: float
+    hypothesis: Hypothesis
+    assignment: np.ndarray
+
+
+@dataclass
+class Choice:
+    """The outcome of the refine stage.
+
+    candidate : the candidate that won. outcome : its fine refinement (pose, covariance, iterations).
+    margin : how far its score lies above the best distinct rival's (refined scores when several contenders
+        were refined, coarse ones otherwise), or its whole score when there is no distinct rival.
+    has_rival : a distinct rival exists. fitness, rmse_m : share of `Scan.check_xyz` within the inlier distance
+        of the map at the refined pose, and their RMSE in metres.
+    center_camera : (3,) centre of the frame's points, colour-camera frame; roi_frame_points : frame points kept
+        inside the region of interest.
+    """
+
+    candidate: Candidate
+    outcome: RefineOutcome
+    margin: float
+    has_rival: bool
+    fitness: float
+    rmse_m: float
+    center_camera: np.ndarray
+    roi_frame_points: int
+
+
+class StageTimer:
+    """Adds each stage's wall time, milliseconds, into `stage_ms[name]` and reports `progress(done, total)` after
+    each of `PROGRESS_STAGES`."""
+
+    def __init__(self, stage_ms: dict[str, float], progress: Callable[[int, int], None] | None = None) -> None:
+        self.stage_ms = stage_ms
+        self.progress = progress
+
+    @contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.stage_ms[name] = self.stage_ms.get(name, 0.0) + (time.perf_counter() - start) * 1000.0
+        if self.progress is not None and name in PROGRESS_STAGES:
+            self.progress(PROGRESS_STAGES.index(name) + 1, len(PROGRESS_STAGES))
+
+
+def confidence(fitness: float, rmse_m: float, margin: float, *, inlier_m: float, confident_margin: float) -> float:
+    """How much to trust a refined pose, in [0, 1]:
+
+        fitness · exp(−(rmse_m / inlier_m)²) · min(1, ½ + ½ · margin / confident_margin)
+
+    how much of the frame lies on the map, how tightly, and how clearly the best beat its distinct rival (a tie
+    halves the confidence, a margin of `confident_margin` or more leaves it whole).
+    """
+    value = fitness * np.exp(-(rmse_m / inlier_m) ** 2) * min(1.0, 0.5 + 0.5 * margin / confident_margin)
+    return float(np.clip(value, 0.0, 1.0))
+
+
+def low_overlap_confidence(fitness: float) -> float:
+    """Confidence of a pose too little of the frame supports: half its fitness, always below an `ok` answer's."""
+    return float(fitness) * 0.5
