@@ -41,6 +41,10 @@ MIN_SCREEN_POINTS = 20
 # Fewer frame points than this inside the ROI cannot carry a GICP: refine with the whole frame instead.
 MIN_ROI_POINTS = 100
 FALLBACKS = ("floor-grid", "fpfh-ransac")  # cheapest first
+# Neighbours of each point's covariance in the coarse GICP: small_gicp's default, as for the map's side.
+GICP_NEIGHBORS = 10
+# An object's top is the 98th percentile of its points along up: the highest 2 % are mixed pixels and noise.
+TOP_PERCENTILE = 98
 
 
 class Localizer:
@@ -193,7 +197,7 @@ class Localizer:
             # Few objects: little to go on, so search single-object offsets densely as well.
             offset = mc.offset_step_m if len(clusters) <= mc.dense_below_objects else 0.0
             up_camera = R_level.T @ self.up
-            tops = np.array([np.percentile(scan.down.xyz[c.index] @ up_camera, 98) for c in clusters])
+            tops = np.array([np.percentile(scan.down.xyz[c.index] @ up_camera, TOP_PERCENTILE) for c in clusters])
             return gravity_hypotheses(centroids, classes, self.graph, R_level=R_level, up=self.up,
                                       camera_height_m=camera_up_m, yaw_step_deg=mc.yaw_step_deg,
                                       pair_tolerance_m=mc.pair_tolerance_m, offset_step_m=offset,
@@ -208,7 +212,8 @@ class Localizer:
         the graph's best is weak (FallbackConfig.min_graph_fitness)."""
         fb = self.config.fallback
         with timer("verify"):
-            source = small_gicp.preprocess_points(scan.down.xyz, self.config.refine.coarse_voxel_m, num_neighbors=10)[0]
+            source = small_gicp.preprocess_points(scan.down.xyz, self.config.refine.coarse_voxel_m,
+                                                  num_neighbors=GICP_NEIGHBORS)[0]
             candidates = self._coarse_align(hyp, source, scan)
             if prior is not None:
                 # A client's pose prior is one more hypothesis, checked like the others (never trusted blindly).

@@ -1,0 +1,99 @@
+"""The localizer's stage values: the confidence formula, the stage timer, the synthetic scene's real Site, and
+the stages run one by one giving what `localize` gives."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from cadreg.camera import CameraIntrinsics
+from cadreg.config import LocalizeConfig, MatchConfig
+from cadreg.errors import InvalidArgument, InvalidFrame
+from cadreg.localize import Localizer
+from cadreg.localize.stages import PROGRESS_STAGES, StageTimer, confidence, low_overlap_confidence
+from cadreg.localize.synthetic import look_pose, make_scene, render_frame
+from cadreg.result import Diagnostics
+from cadreg.site.bundle import Site
+
+K = CameraIntrinsics(240, 180, 216.0, 216.0, 119.5, 89.5)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene(5, n_objects=7)
+
+
+def test_confidence_formula() -> None:
+    # perfect fit, clear winner: whole confidence
+    assert confidence(1.0, 0.0, 0.5, inlier_m=0.05, confident_margin=0.1) == 1.0
+    # a tie halves it; half the confident margin gives three quarters
+    assert confidence(1.0, 0.0, 0.0, inlier_m=0.05, confident_margin=0.1) == pytest.approx(0.5)
+    assert confidence(1.0, 0.0, 0.05, inlier_m=0.05, confident_margin=0.1) == pytest.approx(0.75)
+    # an RMSE of one inlier distance costs a factor e⁻¹; fitness scales linearly
+    assert confidence(0.8, 0.05, 1.0, inlier_m=0.05, confident_margin=0.1) == pytest.approx(0.8 / np.e)
+    assert 0.0 <= confidence(2.0, 0.0, 9.0, inlier_m=0.05, confident_margin=0.1) <= 1.0
+    assert low_overlap_confidence(0.4) == pytest.approx(0.2)
+
+
+def test_stage_timer_adds_up_and_reports_progress() -> None:
+    stage_ms: dict[str, float] = {}
+    calls: list[tuple[int, int]] = []
+    timer = StageTimer(stage_ms, lambda done, total: calls.append((done, total)))
+    with timer("points"):
+        time.sleep(0.02)
+    with timer("fallback"):  # timed, but no progress step of its own
+        pass
+    with timer("points"):
+        time.sleep(0.01)
+    assert stage_ms["points"] >= 30.0 and "fallback" in stage_ms
+    assert calls == [(1, len(PROGRESS_STAGES)), (1, len(PROGRESS_STAGES))]
+    with pytest.raises(RuntimeError):
+        with timer("refine"):
+            raise RuntimeError("a failing stage is still timed")
+    assert "refine" in stage_ms
+
+
+def test_synthetic_scene_is_a_real_site(scene, tmp_path) -> None:
+    site = scene.site
+    assert isinstance(site, Site) and len(site.version) == 12
+    assert len(site.graph.nodes) == 7 and all(n.points > 0 for n in site.graph.nodes)
+    # every object's points carry its instance and class
+    for i, node in enumerate(site.graph.nodes):
+        assert set(site.classes[c] for c in np.unique(site.map.class_index[site.map.instance == i])) == {node.cls}
+    site.save(tmp_path / "s")
+    again = Site.load(tmp_path / "s")
+    assert again.version == site.version and len(again.map) == len(site.map)
+
+
+def test_stages_one_by_one_match_localize(scene) -> None:
+    loc = Localizer.from_site(scene.site)
+    T = look_pose(np.array([2.5, 2.0, 1.5]), 0.6, np.radians(30))
+    frame = render_frame(scene, T, intrinsics=K, depth_noise_m=0.0015)
+    whole = loc.localize(frame)
+    diag = Diagnostics()
+    timer = StageTimer(diag.stage_ms)
+    scan = loc._scan(frame, diag, timer)
+    assert len(scan.score_xyz) == loc.config.frame.score_points and len(scan.fit_xyz) == loc.config.frame.fit_points
+    hyp = loc._hypotheses(scan)
+    assert 0 < len(hyp) <= loc.config.match.candidates
+    candidates = loc._verify(scan, hyp, None, diag, timer)
+    assert [c.score for c in candidates] == sorted((c.score for c in candidates), reverse=True)
+    choice = loc._refine(scan, candidates, "small_gicp", diag)
+    np.testing.assert_allclose(choice.outcome.T_map_camera, whole.T_map_camera)
+    assert set(whole.diagnostics.stage_ms) >= {"points", "cluster", "gravity", "match", "verify", "refine"}
+
+
+def test_top_k_default_and_request_checks(scene) -> None:
+    loc = Localizer.from_site(scene.site, LocalizeConfig(match=MatchConfig(top_k=2)))
+    T = look_pose(np.array([2.5, 2.0, 1.5]), 0.6, np.radians(30))
+    frame = render_frame(scene, T, intrinsics=K)
+    assert len(loc.localize(frame).hypotheses) == 2
+    assert len(Localizer.from_site(scene.site).localize(frame).hypotheses) > 2  # the default, 5
+    with pytest.raises(InvalidArgument, match="unknown refinement method"):
+        loc.localize(frame, method="nope")
+    with pytest.raises(ValueError):  # InvalidArgument is a ValueError too
+        loc.localize(frame, method="nope")
+    with pytest.raises(InvalidFrame):
+        loc.localize("not a frame")  # type: ignore[arg-type]
