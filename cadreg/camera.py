@@ -36,6 +36,12 @@ class CameraIntrinsics:
             raise InvalidFrame(f"principal point ({self.cx}, {self.cy}) is far outside a {self.width}x{self.height} image")
 
     @property
+    def fov_deg(self) -> tuple[float, float]:
+        """(horizontal, vertical) field of view, degrees, for a centred principal point."""
+        return (math.degrees(2.0 * math.atan(0.5 * self.width / self.fx)),
+                math.degrees(2.0 * math.atan(0.5 * self.height / self.fy)))
+
+    @property
     def K(self) -> np.ndarray:
         """3×3 float64 calibration matrix."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])

@@ -13,6 +13,13 @@ import numpy as np
 from .camera import CameraIntrinsics
 from .errors import InvalidFrame
 
+# Fields of view of real depth and colour cameras: telephoto phones ~25°, Kinect / RealSense / Structure 55–90°,
+# ultra-wide phones ~120°. Intrinsics outside these are a unit mistake (fx in metres, or in another image size)
+# and would otherwise be registered as they are: fx = 1e12 squeezes the frame into a point, fx = 1e-12 spreads it
+# over kilometres.
+MIN_FOV_DEG = 20.0
+MAX_FOV_DEG = 150.0
+
 
 @dataclass
 class Frame:
@@ -53,6 +60,13 @@ class Frame:
                 f"depth is {d.shape[1]}x{d.shape[0]} but its intrinsics say "
                 f"{self.depth_intrinsics.width}x{self.depth_intrinsics.height}"
             )
+        for name, K in (("depth", self.depth_intrinsics), ("color", self.color_intrinsics)):
+            h_fov, v_fov = K.fov_deg
+            if not (MIN_FOV_DEG <= h_fov <= MAX_FOV_DEG and MIN_FOV_DEG <= v_fov <= MAX_FOV_DEG):
+                raise InvalidFrame(
+                    f"{name} intrinsics give a {h_fov:.3g}° × {v_fov:.3g}° field of view for {K.width}x{K.height} "
+                    f"(fx={K.fx:g}, fy={K.fy:g}); a camera sees {MIN_FOV_DEG:g}°–{MAX_FOV_DEG:g}°",
+                    detail={"field": f"{name}_intrinsics", "fov_deg": [h_fov, v_fov]})
         if not isinstance(c, np.ndarray) or c.ndim != 3 or c.shape[2] != 3 or c.dtype != np.uint8:
             raise InvalidFrame(f"color must be (h, w, 3) uint8, got {getattr(c, 'shape', None)} {getattr(c, 'dtype', None)}")
         if (c.shape[1], c.shape[0]) != (self.color_intrinsics.width, self.color_intrinsics.height):
