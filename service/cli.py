@@ -1,10 +1,13 @@
 """`cadreg serve`: the HTTP + zenoh service (a plugin sub-command, entry point group `cadreg.commands`).
 
     cadreg serve [--sites DIR] [--host 127.0.0.1] [--port 8080] [--workers N] [--zenoh-listen ENDPOINT]
+                 [--localize-config FILE.toml|FILE.json]
 
 With no arguments it serves the bundled demo site (built on first use into the settings' demo cache dir) on
 127.0.0.1:8080 over HTTP and on tcp/127.0.0.1:7447 over zenoh. Every other setting comes from `CADREG_*`
-environment variables (see service/settings.py); flags override them.
+environment variables (see service/settings.py); flags override them. `--localize-config` (or
+CADREG_LOCALIZE_CONFIG) names a TOML or JSON file of algorithm parameters (cadreg.config.LocalizeConfig sections,
+e.g. `[match]` / `top_k = 3`); it is validated before anything starts and every worker uses it.
 """
 
 from __future__ import annotations
@@ -29,6 +32,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--zenoh-listen", metavar="ENDPOINT", action="append",
                         help="zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
     parser.add_argument("--no-zenoh", action="store_true", help="HTTP only")
+    parser.add_argument("--localize-config", metavar="FILE",
+                        help="TOML or JSON file of localizer parameters (LocalizeConfig sections); default: the "
+                        "code's defaults, or CADREG_LOCALIZE_CONFIG")
     parser.set_defaults(func=run)
 
 
@@ -47,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
         workers=args.workers,
         zenoh_listen=args.zenoh_listen,
         zenoh_enabled=False if args.no_zenoh else None,
+        localize_config=args.localize_config,
     )
     service = Service(settings)
     # Start here rather than in the app's lifespan: a bad sites directory or a tampered bundle then ends the
@@ -65,6 +72,8 @@ def run(args: argparse.Namespace) -> int:
     app = create_app(settings, service, zenoh_server)
     log.info("cadreg serve: http://%s:%d (sites: %s)", settings.host, settings.port,
              settings.sites_dir or f"demo, cached in {settings.demo_cache_dir}")
+    # what differs from the code's defaults, so that a log tells which parameters answered
+    log.info("localize config: %s", settings.localize_config.model_dump(exclude_defaults=True) or "defaults")
     uvicorn.run(app, host=settings.host, port=settings.port, log_level="info", access_log=False,
                 timeout_graceful_shutdown=10)
     return 0

@@ -24,9 +24,11 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import wait
 from typing import Any
 
+from cadreg.config import LocalizeConfig
 from cadreg.errors import CadregError, Overloaded, RequestTimeout, WorkerCrashed
 
 from .errors import error_from_body
+from .schemas import FrameMeta
 from .worker import THREAD_VARS, WORKER_NAME_PREFIX, worker_main
 
 log = logging.getLogger("cadreg.service.pool")
@@ -91,6 +93,7 @@ class WorkerPool:
     """`workers` processes, each holding a Localizer per site; at most `workers + queue_depth` jobs at once.
 
     sites : {site_id: bundle directory} loaded by every worker at start (and by every replacement).
+    localize_config : the algorithm's parameters, sent as the object itself to every worker (and replacement).
     """
 
     def __init__(
@@ -102,7 +105,7 @@ class WorkerPool:
         timeout_s: float,
         retry_after_s: float = 1.0,
         start_timeout_s: float = 600.0,
-        localize_config: dict[str, Any] | None = None,
+        localize_config: LocalizeConfig | None = None,
         test_hooks: bool = False,
     ) -> None:
         self._sites = dict(sites)
@@ -111,7 +114,7 @@ class WorkerPool:
         self._timeout_s = timeout_s
         self._retry_after_s = retry_after_s
         self._start_timeout_s = start_timeout_s
-        self._localize_config = localize_config
+        self._localize_config = localize_config if localize_config is not None else LocalizeConfig()
         self._test_hooks = test_hooks
         self._ctx = multiprocessing.get_context("spawn")
         # The children inherit these at exec; the worker module sets them again before its own heavy imports, but a
@@ -177,12 +180,18 @@ class WorkerPool:
                 for w in self._workers
             ]
 
-    def submit(self, site_id: str, version: str | None, parts: dict[str, bytes], meta_json: str,
+    def submit(self, site_id: str, version: str | None, parts: dict[str, bytes], meta: FrameMeta,
                timeout_s: float | None = None) -> concurrent.futures.Future:
         """Queue one localize job; the future yields a JobResult or raises a CadregError.
 
+        `meta` is the FrameMeta validated at the entry; it travels to the worker as that object (pickled), which
+        does not validate it again.
+
         Raises Overloaded at once when `workers + queue_depth` jobs are already waiting or running.
         """
+        if not isinstance(meta, FrameMeta):
+            # a caller bug, not a client's: text here would be parsed in the worker, a second time
+            raise TypeError(f"meta must be a validated FrameMeta, not {type(meta).__name__}")
         now = time.monotonic()
         future: concurrent.futures.Future = concurrent.futures.Future()
         with self._lock:
@@ -196,7 +205,7 @@ class WorkerPool:
                     detail={"queue": len(self._queue), "workers": self._n},
                 )
             job_id = next(self._ids)
-            job = _Job(job_id, ("localize", job_id, site_id, version, parts, meta_json), future, now,
+            job = _Job(job_id, ("localize", job_id, site_id, version, parts, meta), future, now,
                        now + (timeout_s or self._timeout_s))
             self._queue.append(job)
         self._wake()

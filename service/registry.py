@@ -1,10 +1,11 @@
 """The site registry: which sites the service serves, at which bundle version, from which directory.
 
-At start every bundle under the sites root (`<root>/<site_id>/site.json`) is loaded once here (hash-checked by
-`Site.load`) to learn its id, version and sizes; the heavy arrays are dropped again, the workers hold their own
-copies. A reload (`replace`) validates the new bundle first, has every worker load it (they keep the old version for
-requests already dispatched), and only then swaps the registry entry: requests in flight finish on the old
-version, requests admitted after the swap carry the new one.
+The parent reads manifests, the workers load maps: at start every bundle under the sites root
+(`<root>/<site_id>/site.json`) is checked here by `Site.read_manifest(verify=True)` (schema, keys, version, every
+file's sha256; no point cloud is parsed) to learn its id, version and counts; only the workers parse the arrays.
+An upload is hash-checked once, on its staged copy. A reload validates the new bundle first, has every worker load
+it (they keep the old version for requests already dispatched), and only then swaps the registry entry: requests
+in flight finish on the old version, requests admitted after the swap carry the new one.
 """
 
 from __future__ import annotations
@@ -47,18 +48,27 @@ class SiteEntry:
 
 
 def inspect_bundle(path: str | Path) -> SiteEntry:
-    """Load and hash-check the bundle at `path` (raises InvalidFileError / BundleIntegrityError) -> its entry."""
+    """Hash-check the bundle at `path` and read its manifest (raises InvalidFileError / BundleIntegrityError naming
+    the file) -> its entry. Reads every file to hash it but parses only site.json: a map of millions of points
+    costs the parent no memory, the workers load it."""
     from cadreg.site.bundle import Site
 
-    site = Site.load(path)
+    meta_path = Path(path) / "site.json"
+    meta = Site.read_manifest(path, verify=True)
+    counts = meta.get("counts")
+    if not isinstance(counts, dict):
+        raise InvalidFileError(meta_path, "missing key 'counts' (points, raw_points, nodes, edges)")
+    try:
+        sizes = {key: int(counts[key]) for key in ("points", "nodes", "edges")}
+        classes = tuple(str(c) for c in meta["classes"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InvalidFileError(meta_path, f"malformed counts or classes: {exc!r}") from None
     return SiteEntry(
-        site_id=site.site_id,
-        version=site.version,
+        site_id=str(meta["site_id"]),
+        version=str(meta["version"]),
         path=str(Path(path).resolve()),
-        nodes=len(site.graph.nodes),
-        edges=int(site.graph.graph.number_of_edges()),
-        points=int(len(site.points)),
-        classes=tuple(site.classes),
+        classes=classes,
+        **sizes,
     )
 
 
@@ -79,7 +89,7 @@ class SiteRegistry:
         self._reload_locks: dict[str, threading.Lock] = {}
 
     def load_all(self) -> list[SiteEntry]:
-        """Load every bundle under the root; any bad bundle fails the start (naming its file)."""
+        """Check every bundle under the root (manifest and hashes); any bad bundle fails the start (naming its file)."""
         entries: dict[str, SiteEntry] = {}
         for path in find_bundles(self.root):
             entry = inspect_bundle(path)

@@ -11,6 +11,7 @@ import concurrent.futures
 import logging
 import shutil
 import threading
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -76,6 +77,7 @@ class Service:
             timeout_s=s.request_timeout_s,
             retry_after_s=s.retry_after_s,
             start_timeout_s=s.worker_start_timeout_s,
+            localize_config=s.localize_config,
             test_hooks=s.test_hooks,
         )
         self.pool.start()
@@ -93,7 +95,8 @@ class Service:
 
     def submit(self, site_id: str, parts: dict[str, bytes], meta: FrameMeta | str | bytes | dict,
                timeout_s: float | None = None) -> concurrent.futures.Future:
-        """Validate what is cheap (site, meta, parts present) and queue the job; images are decoded in the worker."""
+        """Validate what is cheap (site, meta, parts present) and queue the job; images are decoded in the worker.
+        The meta is validated here, once: the worker receives the FrameMeta object, not text to parse again."""
         entry = self.registry.get(site_id)
         meta = parse_meta(meta)
         unknown = sorted(set(parts) - set(PART_NAMES))
@@ -104,7 +107,7 @@ class Service:
                 raise InvalidFrame(f"missing part: {name}", detail={"part": name})
         if self.pool is None:
             raise Overloaded("the service is starting", retry_after_s=self.settings.retry_after_s)
-        return self.pool.submit(site_id, entry.version, parts, meta.model_dump_json(), timeout_s)
+        return self.pool.submit(site_id, entry.version, parts, meta, timeout_s)
 
     def finish(self, job: JobResult, site_id: str, request_id: str) -> dict[str, Any]:
         """The answer body: the result plus request id, site id and the bundle version that answered."""
@@ -139,7 +142,9 @@ class Service:
                 shutil.rmtree(staged.parent if staged.parent.name != ".incoming" else staged, ignore_errors=True)
                 raise
             target = self.registry.install(site_id, staged)
-            entry = inspect_bundle(target)
+            # Moving the checked directory into place changes no byte: the entry is the staged one at its new path
+            # (hashing a large bundle a second time only delayed the swap).
+            entry = replace(entry, path=str(target.resolve()))
             self._load_everywhere(entry)
             self.registry.swap(entry)
             return entry

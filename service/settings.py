@@ -1,18 +1,25 @@
 """Service settings: one `Settings` (environment prefix `CADREG_`), built by the runner and passed into
 `create_app(settings)`; there is no module-level instance. Bad values fail at construction with a message naming
 the setting (`settings_from(...)` turns pydantic's error into a `ConfigError`).
+
+The algorithm's parameters travel typed: `localize_config` is a `cadreg.config.LocalizeConfig`, read from the JSON
+or TOML file named by `CADREG_LOCALIZE_CONFIG` (or `cadreg serve --localize-config`), validated here at start and
+handed as that object to every worker. A bad file raises `ConfigError("bad localize config <path>: <field>: <why>")`.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import re
+import tomllib
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, SecretStr, ValidationError, field_validator, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from cadreg.config import LocalizeConfig
 from cadreg.errors import ConfigError
 
 # zenoh locators: <protocol>/<address>[#<config>], e.g. tcp/127.0.0.1:7447, udp/[::1]:7447
@@ -22,6 +29,38 @@ _ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream|unixpipe)/\S+$")
 def _default_cache_dir() -> Path:
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     return Path(base) / "cadreg" / "sites"
+
+
+def _problems(exc: ValidationError) -> str:
+    """pydantic's errors as one line: `<dotted field>: <why>; ...`."""
+    return "; ".join(f"{'.'.join(str(p) for p in e['loc']) or 'settings'}: {e['msg']}" for e in exc.errors())
+
+
+def load_localize_config(path: str | Path) -> LocalizeConfig:
+    """The LocalizeConfig in a `.toml` or `.json` file (sections as tables / objects, e.g. `[match] top_k = 2`);
+    anything missing keeps the code's default. Raises ConfigError naming the file and the field."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".toml", ".json"):
+        raise ConfigError(f"bad localize config {path}: expected a .toml or .json file")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"bad localize config {path}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"bad localize config {path}: unreadable: {exc}") from None
+    try:
+        doc = tomllib.loads(text) if suffix == ".toml" else json.loads(text)
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:
+        # one line: the start-up error is a single line on stderr
+        why = " ".join(str(exc).split())
+        raise ConfigError(f"bad localize config {path}: not valid {suffix[1:].upper()}: {why}") from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"bad localize config {path}: the top level must be a table of sections")
+    try:
+        return LocalizeConfig.model_validate(doc)
+    except ValidationError as exc:
+        raise ConfigError(f"bad localize config {path}: {_problems(exc)}") from None
 
 
 def _default_workers() -> int:
@@ -55,6 +94,12 @@ class Settings(BaseSettings):
     zenoh_gossip_scouting: bool = False
     stream_queue_per_device: int = Field(2, ge=1, le=1000, description="frames kept per streaming device; older ones are dropped")
     log_requests: bool = True
+    # NoDecode: the environment holds a file path, not the JSON of the model; `_localize_config` reads the file.
+    localize_config: Annotated[LocalizeConfig, NoDecode] = Field(
+        default_factory=LocalizeConfig,
+        description="algorithm parameters for every worker; from the environment or a flag: the path of a .toml or "
+        ".json file of LocalizeConfig sections (unset = the code's defaults)",
+    )
     test_hooks: bool = Field(
         False, description="tests only: a frame id '__sleep__:<s>' makes the worker sleep; /debug/workers lists pids"
     )
@@ -74,6 +119,17 @@ class Settings(BaseSettings):
             raise ValueError(f"{value} is not a directory")
         return value
 
+    @field_validator("localize_config", mode="before")
+    @classmethod
+    def _localize_config(cls, value: Any) -> Any:
+        # A path is read and validated here; ConfigError is not a ValueError, so pydantic lets it through as is and
+        # the start fails with the file's own message (not wrapped as "bad service settings: ...").
+        if isinstance(value, str) and not value.strip():
+            return LocalizeConfig()  # `CADREG_LOCALIZE_CONFIG=` (set but empty, as in a compose file) means unset
+        if isinstance(value, (str, os.PathLike)):
+            return load_localize_config(value)
+        return value
+
     @model_validator(mode="after")
     def _zenoh_reachable(self) -> "Settings":
         if self.zenoh_enabled and self.zenoh_mode == "client" and not self.zenoh_connect:
@@ -91,10 +147,10 @@ class Settings(BaseSettings):
 
 
 def settings_from(**overrides: Any) -> Settings:
-    """Settings from the environment plus explicit overrides (None values are ignored); bad values -> ConfigError."""
+    """Settings from the environment plus explicit overrides (None values are ignored); bad values -> ConfigError.
+    `localize_config` may be given as a file path (what `--localize-config` passes) or a LocalizeConfig."""
     values = {k: v for k, v in overrides.items() if v is not None}
     try:
         return Settings(**values)
     except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(str(p) for p in e['loc']) or 'settings'}: {e['msg']}" for e in exc.errors())
-        raise ConfigError(f"bad service settings: {problems}") from None
+        raise ConfigError(f"bad service settings: {_problems(exc)}") from None

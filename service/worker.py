@@ -2,9 +2,10 @@
 
 Runs in a "spawn" child (Open3D and threads do not mix with fork). Numeric libraries get one thread each: the
 variables below are set before numpy/open3d are imported in this process, which is why the heavy imports live inside
-the functions. Messages (tuples over a `multiprocessing` Pipe):
+the functions. Messages (tuples over a `multiprocessing` Pipe; pydantic models travel pickled, already validated):
 
-    parent -> worker   ("localize", job_id, site_id, version, parts: dict[str, bytes], meta_json: str)
+    start (spawn args) worker_main(conn, [(site_id, bundle_dir), ...], LocalizeConfig, test_hooks)
+    parent -> worker   ("localize", job_id, site_id, version, parts: dict[str, bytes], meta: FrameMeta)
                        ("load", job_id, site_id, path)     load (or reload) one site; keeps the previous version
                        ("stop",)
     worker -> parent   ("ready", pid, [[site_id, version], ...])
@@ -30,7 +31,12 @@ import logging  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections import OrderedDict  # noqa: E402
-from typing import Any  # noqa: E402
+from typing import TYPE_CHECKING, Any  # noqa: E402
+
+if TYPE_CHECKING:
+    from cadreg.config import LocalizeConfig
+
+    from .schemas import FrameMeta
 
 SLEEP_HOOK_PREFIX = "__sleep__:"  # test hook (settings.test_hooks): frame id "__sleep__:<seconds>"
 VERSIONS_KEPT = 2  # the version being replaced stays for requests already dispatched to it
@@ -41,10 +47,12 @@ log = logging.getLogger("cadreg.service.worker")
 class _Sites:
     """Localizers by site id, newest version last; keeps `VERSIONS_KEPT` versions per site."""
 
-    def __init__(self, localize_config: dict[str, Any] | None) -> None:
+    def __init__(self, config: LocalizeConfig) -> None:
         from cadreg.config import LocalizeConfig
 
-        self.config = LocalizeConfig.model_validate(localize_config or {})
+        if not isinstance(config, LocalizeConfig):
+            raise TypeError(f"localize config must be a LocalizeConfig, not {type(config).__name__}")
+        self.config = config
         self.by_site: dict[str, OrderedDict[str, Any]] = {}
 
     def load(self, site_id: str, path: str) -> str:
@@ -85,17 +93,22 @@ def _error_body(exc: BaseException) -> dict[str, Any]:
     return error_body(exc)
 
 
-def _localize(sites: _Sites, msg: tuple, test_hooks: bool) -> tuple:
-    from .codec import decode_frame, parse_meta
+def _top_k(meta: FrameMeta) -> int | None:
+    """The request's top_k when the client gave one; else None, so that the site's LocalizeConfig (match.top_k)
+    decides. FrameMeta fills in a default top_k, which would otherwise override the configured one."""
+    return meta.top_k if "top_k" in meta.model_fields_set else None
 
-    _, job_id, site_id, version, parts, meta_json = msg
+
+def _localize(sites: _Sites, msg: tuple, test_hooks: bool) -> tuple:
+    from .codec import decode_frame
+
+    _, job_id, site_id, version, parts, meta = msg
     try:
-        meta = parse_meta(meta_json)
         if test_hooks and meta.frame_id and meta.frame_id.startswith(SLEEP_HOOK_PREFIX):
             time.sleep(float(meta.frame_id[len(SLEEP_HOOK_PREFIX):]))
         localizer, used = sites.get(site_id, version)
         frame = decode_frame(parts, meta)
-        result = localizer.localize(frame, top_k=meta.top_k)
+        result = localizer.localize(frame, top_k=_top_k(meta))
         return ("result", job_id, True, result.to_dict(), used)
     except Exception as exc:  # every failure goes back as an error body; the worker lives on
         if not hasattr(exc, "code"):
@@ -103,7 +116,7 @@ def _localize(sites: _Sites, msg: tuple, test_hooks: bool) -> tuple:
         return ("result", job_id, False, _error_body(exc), None)
 
 
-def worker_main(conn, sites: list[tuple[str, str]], localize_config: dict[str, Any] | None, test_hooks: bool) -> None:
+def worker_main(conn, sites: list[tuple[str, str]], localize_config: LocalizeConfig, test_hooks: bool) -> None:
     """Entry point of a worker process; `sites` = [(site_id, bundle_dir)]."""
     import signal
 

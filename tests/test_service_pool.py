@@ -12,6 +12,7 @@ import pytest
 from cadreg.errors import InvalidFileError, RequestTimeout, UnknownSite
 from service import codec
 from service.pool import JobResult, WorkerPool
+from service.schemas import FrameMeta
 from service.worker import SLEEP_HOOK_PREFIX
 from test_service_support import load_frames, render_frames
 
@@ -27,7 +28,8 @@ def test_workers_that_cannot_start_never_leave_a_request_hanging(tmp_path) -> No
         assert "missing" in pool.start_error["message"]
         assert not pool.ready and pool.restarts["start_failed"] >= 1
         t0 = time.monotonic()
-        future = pool.submit("ghost", None, {"color": b"x", "depth": b"y"}, "{}")
+        meta = FrameMeta(depth_intrinsics={"fx": 500.0, "fy": 500.0, "cx": 319.5, "cy": 239.5})
+        future = pool.submit("ghost", None, {"color": b"x", "depth": b"y"}, meta)
         with pytest.raises(RequestTimeout):
             future.result(timeout=10)
         assert time.monotonic() - t0 < 3.0
@@ -53,7 +55,7 @@ def envelope(scene0470_site_dir: Path, tmp_path_factory):
 
 def test_a_job_gives_a_result_with_its_version_and_timings(pool, envelope, scene0470_site_dir) -> None:
     parts, meta = envelope
-    job = pool.submit("scene0470", None, parts, meta.model_dump_json()).result(timeout=60)
+    job = pool.submit("scene0470", None, parts, meta).result(timeout=60)
     assert isinstance(job, JobResult) and job.result["status"] in ("ok", "ambiguous")
     assert job.site_version == codec.decode_result((scene0470_site_dir / "site.json").read_bytes())["version"]
     assert job.run_ms > 0 and job.queue_ms >= 0 and job.worker_pid == pool.workers_info()[0]["pid"]
@@ -62,19 +64,19 @@ def test_a_job_gives_a_result_with_its_version_and_timings(pool, envelope, scene
 def test_worker_errors_come_back_typed_and_the_worker_lives_on(pool, envelope) -> None:
     parts, meta = envelope
     with pytest.raises(UnknownSite):
-        pool.submit("elsewhere", None, parts, meta.model_dump_json()).result(timeout=60)
+        pool.submit("elsewhere", None, parts, meta).result(timeout=60)
     bad = dict(parts, depth=b"\x89PNG broken")
     with pytest.raises(Exception) as info:
-        pool.submit("scene0470", None, bad, meta.model_dump_json()).result(timeout=60)
+        pool.submit("scene0470", None, bad, meta).result(timeout=60)
     assert info.value.code == "invalid_frame"
-    assert pool.restarts == {} and pool.submit("scene0470", None, parts, meta.model_dump_json()).result(60)
+    assert pool.restarts == {} and pool.submit("scene0470", None, parts, meta).result(60)
 
 
 def test_failed_reload_keeps_serving_the_old_version(pool, envelope, tmp_path, scene0470_site_dir) -> None:
     with pytest.raises(InvalidFileError):
         pool.load_site("scene0470", str(tmp_path / "nothing-here")).result(timeout=60)
     parts, meta = envelope
-    assert pool.submit("scene0470", None, parts, meta.model_dump_json()).result(60).result["status"] in ("ok", "ambiguous")
+    assert pool.submit("scene0470", None, parts, meta).result(60).result["status"] in ("ok", "ambiguous")
     # a replacement worker would still load the good bundle
     assert pool.site_paths() == {"scene0470": str(scene0470_site_dir)}
 
@@ -90,7 +92,7 @@ def test_a_worker_replaced_during_a_reload_loads_the_new_version(pool, envelope,
     parts, meta = envelope
     # the worker is busy when the reload arrives, and dies before it can run it
     sleeper = meta.model_copy(update={"frame_id": f"{SLEEP_HOOK_PREFIX}30"})
-    busy = pool.submit("scene0470", None, parts, sleeper.model_dump_json())
+    busy = pool.submit("scene0470", None, parts, sleeper)
     while pool.workers_info()[0]["state"] != "busy":
         time.sleep(0.01)
     loaded = pool.load_site("scene0470", str(second))
@@ -100,7 +102,7 @@ def test_a_worker_replaced_during_a_reload_loads_the_new_version(pool, envelope,
     assert info.value.code == "worker_crashed"
     loaded.result(timeout=120)
     assert pool.site_paths() == {"scene0470": str(second)}
-    job = pool.submit("scene0470", site.version, parts, meta.model_dump_json()).result(60)
+    job = pool.submit("scene0470", site.version, parts, meta).result(60)
     assert job.site_version == site.version
     pool.load_site("scene0470", str(scene0470_site_dir)).result(timeout=120)
 
@@ -108,10 +110,10 @@ def test_a_worker_replaced_during_a_reload_loads_the_new_version(pool, envelope,
 def test_a_cancelled_queued_job_is_skipped(pool, envelope) -> None:
     parts, meta = envelope
     sleeper = meta.model_copy(update={"frame_id": f"{SLEEP_HOOK_PREFIX}1.0"})
-    first = pool.submit("scene0470", None, parts, sleeper.model_dump_json())
-    second = pool.submit("scene0470", None, parts, meta.model_dump_json())
+    first = pool.submit("scene0470", None, parts, sleeper)
+    second = pool.submit("scene0470", None, parts, meta)
     assert second.cancel()  # still queued behind the sleeper: the client went away
-    third = pool.submit("scene0470", None, parts, meta.model_dump_json())
+    third = pool.submit("scene0470", None, parts, meta)
     assert first.result(60).result["frame_id"] == sleeper.frame_id
     assert third.result(60).result["status"] in ("ok", "ambiguous")
     assert second.cancelled()
@@ -125,18 +127,18 @@ def test_overload_says_how_long_the_queue_takes_to_drain(pool, envelope) -> None
 
     parts, meta = envelope
     for _ in range(3):  # a few real jobs give the pool its time per job
-        pool.submit("scene0470", None, parts, meta.model_dump_json()).result(60)
+        pool.submit("scene0470", None, parts, meta).result(60)
     per_job_s = pool._service_s
     assert per_job_s is not None and 0.0 < per_job_s < 1.0
     # one running + queue_depth (2) waiting: the pool is full
-    held = [pool.submit("scene0470", None, parts, meta.model_dump_json())]
+    held = [pool.submit("scene0470", None, parts, meta)]
     try:
         deadline = time.monotonic() + 10
         while pool.workers_info()[0]["state"] != "busy" and time.monotonic() < deadline:
             time.sleep(0.002)
-        held += [pool.submit("scene0470", None, parts, meta.model_dump_json()) for _ in range(2)]
+        held += [pool.submit("scene0470", None, parts, meta) for _ in range(2)]
         with pytest.raises(Overloaded) as info:
-            pool.submit("scene0470", None, parts, meta.model_dump_json())
+            pool.submit("scene0470", None, parts, meta)
         # 2 queued + this one, on 1 worker, at the recent time per job; never above the configured Retry-After
         assert info.value.retry_after_s == pytest.approx(min(1.0, max(0.05, 3 * per_job_s)), abs=0.002)
     finally:

@@ -170,3 +170,30 @@ def test_upload_of_a_new_site_id_adds_the_site(server, scene0470_site_dir, frame
     assert (server.settings.sites_dir / "annex" / "site.json").is_file()
     assert not (server.settings.sites_dir / "other").exists()
     assert list((server.settings.sites_dir / ".incoming").iterdir()) == []  # staging cleaned after a refusal too
+
+
+def test_an_upload_is_hash_checked_once_and_never_loaded_by_the_parent(server, bundles, monkeypatch) -> None:
+    """The parent verifies the staged bundle's manifest and hashes once; only the workers parse its clouds (the
+    uvicorn under test runs in this process, its workers do not, so the patches below touch the parent only)."""
+    from cadreg.site.bundle import Site
+
+    checked: list[str] = []
+    read_manifest = Site.read_manifest
+
+    def counted(site_dir, *, verify=True):
+        checked.append(str(site_dir))
+        return read_manifest(site_dir, verify=verify)
+
+    def no_load(*args, **kwargs):
+        raise AssertionError("the parent parsed an uploaded bundle")
+
+    monkeypatch.setattr(Site, "read_manifest", staticmethod(counted))
+    monkeypatch.setattr(Site, "load", classmethod(no_load))
+    v1 = _version(bundles["v1"])
+    with httpx.Client(base_url=server.url, timeout=120.0) as client:
+        r = client.put(f"/v1/sites/{SITE}", content=_tar(bundles["v1"]), headers=AUTH)
+        assert r.status_code == 200 and r.json()["version"] == v1, r.text
+        assert client.get(f"/v1/sites/{SITE}").json()["version"] == v1
+    assert len(checked) == 1 and "/.incoming/" in checked[0], checked
+    # the entry points at the installed directory, not at the staging one it was checked in
+    assert server.service.registry.get(SITE).path == str((bundles["sites"] / SITE).resolve())

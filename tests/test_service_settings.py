@@ -15,6 +15,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from cadreg.config import LocalizeConfig
 from cadreg.errors import ConfigError
 from cadreg.site.demo import SITE_ID
 from service.settings import Settings, settings_from
@@ -29,6 +30,7 @@ def test_defaults_are_loopback_and_scouting_off(tmp_path) -> None:
     assert s.zenoh_listen == ["tcp/127.0.0.1:7447"] and s.zenoh_connect == []
     assert s.zenoh_multicast_scouting is False and s.zenoh_gossip_scouting is False
     assert s.sites_root == tmp_path and s.admin_token is None
+    assert s.localize_config == LocalizeConfig()  # no CADREG_LOCALIZE_CONFIG: the code's defaults
 
 
 def test_environment_prefix(monkeypatch, tmp_path) -> None:
@@ -110,13 +112,17 @@ def _wait_ready(url: str, proc: subprocess.Popen, timeout_s: float = 240.0) -> N
 
 
 def test_cadreg_serve_end_to_end(scene0470_site_dir, tmp_path) -> None:
-    """The command a user runs: a subprocess, real ports, one log line per request, a clean Ctrl-C."""
+    """The command a user runs: a subprocess, real ports, one log line per request, a clean Ctrl-C; its
+    --localize-config decides what a request leaves open (top_k)."""
     frames = load_frames(render_frames(scene0470_site_dir, tmp_path / "frames", n=1))
     port, zport = free_port(), free_port()
     env = {**os.environ, "CADREG_QUEUE_DEPTH": "2"}
+    config_top_k = LocalizeConfig().match.top_k - 2
+    (tmp_path / "localize.json").write_text(json.dumps({"match": {"top_k": config_top_k}}))
     proc = subprocess.Popen(
         [shutil.which("cadreg") or "cadreg", "serve", "--sites", str(scene0470_site_dir.parent), "--port", str(port),
-         "--workers", "1", "--zenoh-listen", f"tcp/127.0.0.1:{zport}"],
+         "--workers", "1", "--zenoh-listen", f"tcp/127.0.0.1:{zport}",
+         "--localize-config", str(tmp_path / "localize.json")],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
     )
     try:
@@ -126,6 +132,10 @@ def test_cadreg_serve_end_to_end(scene0470_site_dir, tmp_path) -> None:
         r = httpx.post(url + "/v1/sites/scene0470/localize", files=files, data=data,
                        headers={"X-Request-ID": "serve-test-1"}, timeout=60)
         assert r.status_code == 200 and r.json()["status"] in ("ok", "ambiguous")
+        meta = json.loads(data["meta"])
+        del meta["top_k"]
+        r = httpx.post(url + "/v1/sites/scene0470/localize", files=files, data={"meta": json.dumps(meta)}, timeout=60)
+        assert r.status_code == 200 and len(r.json()["hypotheses"]) == config_top_k
         r = httpx.get(url + "/v1/sites/elsewhere", headers={"X-Request-ID": "serve-test-2"})
         assert r.status_code == 404
     finally:
@@ -136,6 +146,7 @@ def test_cadreg_serve_end_to_end(scene0470_site_dir, tmp_path) -> None:
     assert re.search(r"request_id=serve-test-1 POST /v1/sites/scene0470/localize site=scene0470 status=200 code=ok ms=\d", log)
     assert re.search(r"request_id=serve-test-2 GET /v1/sites/elsewhere site=elsewhere status=404 code=unknown_site", log)
     assert "zenoh peer listening on ['tcp/127.0.0.1:" in log
+    assert f"localize config: {{'match': {{'top_k': {config_top_k}}}}}" in log
 
 
 def test_cadreg_serve_with_no_arguments_serves_the_demo_site(tmp_path) -> None:
