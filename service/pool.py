@@ -28,6 +28,7 @@ from cadreg.config import LocalizeConfig
 from cadreg.errors import CadregError, Overloaded, RequestTimeout, WorkerCrashed
 
 from .errors import error_from_body
+from .logs import log_event
 from .schemas import FrameMeta
 from .worker import THREAD_VARS, WORKER_NAME_PREFIX, worker_main
 
@@ -59,19 +60,48 @@ class _Job:
 
 @dataclass
 class _Control:
-    """A message every worker must process once (load a site); resolves when all have."""
+    """A message some workers must process once (load a site: all of them; probe a site: one); resolves when each
+    has answered, or at `deadline` (the request timeout) with what the workers that answered said: a worker still
+    processing it then is hung and is replaced, one that has it queued still loads it later."""
 
     job_id: int
     message: tuple
     future: concurrent.futures.Future
+    deadline: float = float("inf")
     waiting: set[int] = field(default_factory=set)  # worker slots still to answer
     errors: list[dict[str, Any]] = field(default_factory=list)
+    confirmed: int = 0  # workers that answered yes
+    adopt: Any = None  # called (lock held) on success, before any replacement starts
+
+    def answer(self, slot: int, ok: bool, body: Any, outbox: list) -> None:
+        if slot not in self.waiting:
+            if not ok:
+                log_event(log, "late_control_failed", job_id=self.job_id, slot=slot, error=body)
+            return
+        if ok:
+            self.confirmed += 1
+        else:
+            self.errors.append(body)
+        self.settle(slot, outbox)
 
     def settle(self, slot: int, outbox: list) -> None:
         self.waiting.discard(slot)
         if not self.waiting and not self.future.done():
-            exc = error_from_body(self.errors[0]) if self.errors else None
-            outbox.append((self.future, None, exc))
+            self.finish(outbox)
+
+    def finish(self, outbox: list) -> None:
+        self.waiting.clear()
+        if self.future.done():
+            return
+        if self.errors:
+            exc: BaseException | None = error_from_body(self.errors[0])
+        elif not self.confirmed:
+            exc = RequestTimeout("no worker answered within the request timeout; the hung ones are being replaced")
+        else:
+            exc = None
+            if self.adopt is not None:
+                self.adopt()
+        outbox.append((self.future, None, exc))
 
 
 @dataclass
@@ -130,6 +160,7 @@ class WorkerPool:
         self._stopping = False
         self._thread: threading.Thread | None = None
         self._started_once: set[int] = set()
+        self._controls: list[_Control] = []  # controls not yet settled, by deadline
         self._service_s: float | None = None  # moving average of a job's time on a worker, seconds
         self.restarts: Counter[str] = Counter()  # reason -> count, read by the metrics collector
         self.start_error: dict[str, Any] | None = None
@@ -213,22 +244,41 @@ class WorkerPool:
 
     def load_site(self, site_id: str, path: str) -> concurrent.futures.Future:
         """Have every worker load `site_id` from `path`, keeping the version it replaces for jobs already dispatched
-        to it. Resolves to None once every worker has it (a worker replaced meanwhile loads it when it is up), or
-        raises the first worker's error; only on success do replacements start with the new path."""
+        to it. Resolves to None once every worker has it, or by the request timeout once at least one has (a worker
+        still loading it then is hung: it is killed and its replacement starts with the new path; one that has it
+        queued loads it later), or raises the first worker's error (RequestTimeout when none answered). Only on
+        success do replacements start with the new path."""
         future: concurrent.futures.Future = concurrent.futures.Future()
+
+        def adopt() -> None:  # lock held
+            self._sites[site_id] = path
+
         with self._lock:
             job_id = next(self._ids)
-            control = _Control(job_id, ("load", job_id, site_id, path), future)
+            control = _Control(job_id, ("load", job_id, site_id, path), future,
+                               deadline=time.monotonic() + self._timeout_s, adopt=adopt)
             for w in self._workers:
                 control.waiting.add(w.slot)
                 w.controls.append(control)
+            self._controls.append(control)
+        self._wake()
+        return future
 
-        def adopt(f: concurrent.futures.Future) -> None:
-            if not f.cancelled() and f.exception() is None:
-                with self._lock:
-                    self._sites[site_id] = path
-
-        future.add_done_callback(adopt)
+    def probe_site(self, site_id: str, path: str) -> concurrent.futures.Future:
+        """Have one worker build `site_id`'s localizer from `path` and drop it: proves a bundle loads before it
+        replaces anything. Resolves to None, or raises the worker's error (InvalidFileError naming why it cannot
+        load), RequestTimeout past the request timeout (the worker is replaced), Overloaded when no worker is up."""
+        future: concurrent.futures.Future = concurrent.futures.Future()
+        with self._lock:
+            up = [w for w in self._workers if w.state in ("idle", "busy", "control")]
+            if self._stopping or not up:
+                raise Overloaded("no worker is up to check the bundle", retry_after_s=self._retry_after_s)
+            w = min(up, key=lambda w: (w.state != "idle", len(w.controls)))
+            job_id = next(self._ids)
+            control = _Control(job_id, ("probe", job_id, site_id, path), future,
+                               deadline=time.monotonic() + self._timeout_s, waiting={w.slot})
+            w.controls.append(control)
+            self._controls.append(control)
         self._wake()
         return future
 
@@ -355,7 +405,7 @@ class WorkerPool:
         elif kind == "failed":
             w.failures += 1
             self.start_error = msg[1]
-            log.error("worker %d failed to start: %s", w.slot, msg[1].get("message"))
+            log_event(log, "worker_start_failed", logging.ERROR, slot=w.slot, error=msg[1].get("message"))
             self._retire(w, "start_failed", None)
         elif kind == "result" and w.job is not None and msg[1] == w.job.job_id:
             job, w.job, w.state = w.job, None, "idle"
@@ -369,9 +419,7 @@ class WorkerPool:
                 self._fail(job.future, error_from_body(body))
         elif kind == "loaded" and w.control is not None and msg[1] == w.control.job_id:
             control, w.control, w.state = w.control, None, "idle"
-            if not msg[2]:
-                control.errors.append(msg[3])
-            control.settle(w.slot, self._outbox)
+            control.answer(w.slot, bool(msg[2]), msg[3], self._outbox)
         else:
             log.error("worker %d sent an unexpected message %r", w.slot, kind)
 
@@ -424,6 +472,23 @@ class WorkerPool:
             self._queue = deque(j for j in self._queue if now < j.deadline)
             for job in expired:
                 self._fail(job.future, RequestTimeout(f"no worker free within {job.deadline - job.submitted:.1f} s"))
+        for control in [c for c in self._controls if now >= c.deadline or c.future.done()]:
+            self._controls.remove(control)
+            if control.future.done():
+                continue
+            for w in self._workers:
+                if w.control is control:
+                    # still at it past the request timeout: hung. Its replacement starts from the pool's site paths
+                    # (the new one when another worker loaded it: `finish` adopts it before the respawn below).
+                    w.control = None
+                    self._retire(w, "control_timeout", None)
+                    log_event(log, "control_timeout", logging.WARNING, slot=w.slot, job_id=control.job_id,
+                              kind=control.message[0])
+            control.finish(self._outbox)
+            if control.message[0] == "probe" or control.errors or not control.confirmed:
+                for w in self._workers:  # nobody waits for it any more; a load that failed is not redone
+                    if control in w.controls:
+                        w.controls.remove(control)
         for w in self._workers:
             if w.state == "busy" and w.job is not None and now >= w.job.deadline:
                 spent = now - w.job.submitted
@@ -432,7 +497,7 @@ class WorkerPool:
                 self._retire(w, "start_timeout", None)
 
     def _next_timeout(self, now: float) -> float:
-        times = [j.deadline for j in self._queue]
+        times = [j.deadline for j in self._queue] + [c.deadline for c in self._controls]
         for w in self._workers:
             if w.state == "busy" and w.job is not None:
                 times.append(w.job.deadline)

@@ -11,20 +11,43 @@ in flight finish on the old version, requests admitted after the swap carry the 
 from __future__ import annotations
 
 import logging
+import lzma
+import re
 import shutil
 import tarfile
 import threading
 import uuid
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
-from typing import Any
+from typing import IO, Any
 
-from cadreg.errors import BundleIntegrityError, InvalidFileError, UnknownSite
+from cadreg.errors import BundleIntegrityError, CadregError, InputError, InvalidFileError, PayloadTooLarge, UnknownSite
+from cadreg.site.bundle import DATA_FILES
+
+from .logs import log_event
 
 log = logging.getLogger("cadreg.service.registry")
 
 STAGING_DIR = ".incoming"
+SITE_ID_RULE = "^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$"
+_SITE_ID = re.compile(SITE_ID_RULE)
+BUNDLE_FILES = ("site.json", *DATA_FILES)  # all an archive may install: site.json and the files it references
+MAX_ARCHIVE_MEMBERS = 10_000
+_COPY_CHUNK = 1024 * 1024
+_UPLOAD = "upload"  # what an archive is called in messages: never a server path
+
+
+def check_site_id(site_id: str) -> str:
+    """The one check of a site id from a client (URL, zenoh key): letters, digits, '.', '_', '-', starting with a
+    letter or digit, at most 128 characters -> the id; else InputError (422 invalid_input) naming the rule. An id
+    that passes is a safe single directory name under the sites root."""
+    if not isinstance(site_id, str) or not _SITE_ID.fullmatch(site_id):
+        shown = site_id[:40] + "..." if isinstance(site_id, str) and len(site_id) > 40 else site_id
+        raise InputError(f"site id {shown!r} does not match {SITE_ID_RULE} (letters, digits, '.', '_', '-'; "
+                         "at most 128 characters)", detail={"rule": SITE_ID_RULE})
+    return site_id
 
 
 @dataclass(frozen=True)
@@ -96,13 +119,15 @@ class SiteRegistry:
             if entry.site_id in entries:
                 raise InvalidFileError(path / "site.json", f"site id {entry.site_id!r} is also in {entries[entry.site_id].path}")
             entries[entry.site_id] = entry
-            log.info("site %s version %s from %s (%d nodes, %d points)", entry.site_id, entry.version, path,
-                     entry.nodes, entry.points)
+            log_event(log, "site_found", site_id=entry.site_id, version=entry.version, path=str(path),
+                      nodes=entry.nodes, points=entry.points)
         with self._lock:
             self._sites = entries
         return list(entries.values())
 
     def get(self, site_id: str) -> SiteEntry:
+        """The served entry of `site_id`; InputError for a malformed id, UnknownSite for one not served."""
+        check_site_id(site_id)
         with self._lock:
             entry = self._sites.get(site_id)
         if entry is None:
@@ -127,47 +152,48 @@ class SiteRegistry:
         with self._lock:
             old = self._sites.get(entry.site_id)
             self._sites[entry.site_id] = entry
-        log.info("site %s now at version %s (was %s)", entry.site_id, entry.version, old.version if old else None)
+        log_event(log, "site_swapped", site_id=entry.site_id, version=entry.version,
+                  previous=old.version if old else None)
         return old
 
     # --- archives -----------------------------------------------------------------------------------------------
 
-    def stage_archive(self, site_id: str, archive: Path) -> Path:
+    def stage_archive(self, site_id: str, archive: Path, max_bytes: int) -> Path:
         """Unpack a tar (optionally compressed) or zip archive of a bundle into a fresh staging directory under
-        the root and return the bundle directory in it. The files may sit at the archive's top or inside one
-        top-level directory. Members that would land outside the staging directory are refused."""
+        the root and return that directory. The files may sit at the archive's top or inside one top-level
+        directory; only `BUNDLE_FILES` are unpacked (anything else is skipped unread), only regular files, at most
+        `max_bytes` in all, counted as they are written (a header's size is not trusted): past it PayloadTooLarge.
+        Members that would land outside the bundle are refused. Errors name the "upload", never a server path."""
+        check_site_id(site_id)
         staging = self.root / STAGING_DIR / f"{site_id}-{uuid.uuid4().hex[:8]}"
         staging.mkdir(parents=True)
         try:
             if zipfile.is_zipfile(archive):
-                with zipfile.ZipFile(archive) as zf:
-                    for name in zf.namelist():
-                        _check_member(name, archive)
-                    zf.extractall(staging)
+                _unpack_zip(archive, staging, max_bytes)
             elif tarfile.is_tarfile(archive):
-                with tarfile.open(archive) as tf:
-                    # the "data" filter refuses absolute paths, links out of the tree, devices and the like
-                    tf.extractall(staging, filter="data")
+                _unpack_tar(archive, staging, max_bytes)
             else:
-                raise InvalidFileError("upload", "not a tar or zip archive")
-        except (tarfile.TarError, zipfile.BadZipFile, OSError, EOFError) as exc:
-            shutil.rmtree(staging, ignore_errors=True)
-            raise InvalidFileError("upload", f"unreadable archive: {exc}") from None
-        except Exception:
+                raise InvalidFileError(_UPLOAD, "not a tar or zip archive")
+            if not (staging / "site.json").is_file():
+                raise InvalidFileError(_UPLOAD, "the archive holds no site.json (at its top or in one top-level folder)")
+        except CadregError:
             shutil.rmtree(staging, ignore_errors=True)
             raise
-        if (staging / "site.json").is_file():
-            return staging
-        inner = [p for p in staging.iterdir() if p.is_dir()]
-        if len(inner) == 1 and (inner[0] / "site.json").is_file():
-            return inner[0]
-        shutil.rmtree(staging, ignore_errors=True)
-        raise InvalidFileError("upload", "the archive holds no site.json (at its top or in one top-level folder)")
+        except (tarfile.TarError, zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, zlib.error,
+                lzma.LZMAError, RuntimeError, NotImplementedError, ValueError) as exc:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise InvalidFileError(_UPLOAD, f"unreadable archive: {_scrub(exc, self.root, archive)}") from None
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+        return staging
 
     def install(self, site_id: str, bundle_dir: Path) -> Path:
-        """Move a validated staged bundle to `<root>/<site_id>`; the directory it replaces is removed.
+        """Move a validated staged bundle to `<root>/<site_id>`; the directory it replaces is removed. Called only
+        once a worker has loaded the staged bundle: the good bundle on disk is never replaced by one that fails.
 
         Workers already hold the old version in memory, so replacing its files does not disturb them."""
+        check_site_id(site_id)
         target = self.root / site_id
         trash = self.root / STAGING_DIR / f"old-{site_id}-{uuid.uuid4().hex[:8]}"
         if target.exists():
@@ -180,7 +206,86 @@ class SiteRegistry:
         return target
 
 
-def _check_member(name: str, archive: Path) -> None:
-    p = PurePosixPath(name)
+def _member_name(name: str) -> str | None:
+    """The bundle file an archive member is (`site.json`, `<top>/map.ply`, ...), or None for one to skip. Raises
+    BundleIntegrityError for a name that would land outside the bundle."""
+    p = PurePosixPath(name.replace("\\", "/"))
     if p.is_absolute() or ".." in p.parts:
-        raise BundleIntegrityError(archive, f"archive member {name!r} would land outside the bundle")
+        raise BundleIntegrityError(_UPLOAD, f"archive member {name[:200]!r} would land outside the bundle")
+    parts = [part for part in p.parts if part not in ("", ".")]
+    if len(parts) == 2 and not parts[0].startswith("."):
+        parts = parts[1:]
+    return parts[0] if len(parts) == 1 and parts[0] in BUNDLE_FILES else None
+
+
+class _Budget:
+    """Bytes left to unpack; counts what is actually written."""
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = max_bytes
+        self.used = 0
+
+    def copy(self, src: IO[bytes], dst: Path) -> None:
+        with open(dst, "xb") as out:  # "x": a second member of the same name is refused, not merged
+            while chunk := src.read(_COPY_CHUNK):
+                self.used += len(chunk)
+                if self.used > self.max_bytes:
+                    raise PayloadTooLarge(f"the archive unpacks to more than the {self.max_bytes}-byte limit",
+                                          detail={"limit_bytes": self.max_bytes})
+                out.write(chunk)
+
+
+def _pick(names: list[tuple[str, Any]]) -> dict[str, Any]:
+    """{bundle file: member} of the members to unpack, refusing too many members or a file given twice."""
+    if len(names) > MAX_ARCHIVE_MEMBERS:
+        raise InvalidFileError(_UPLOAD, f"more than {MAX_ARCHIVE_MEMBERS} archive members")
+    chosen: dict[str, Any] = {}
+    for raw, member in names:
+        name = _member_name(raw)
+        if name is None:
+            continue
+        if name in chosen:
+            raise InvalidFileError(_UPLOAD, f"{name} is in the archive twice")
+        chosen[name] = member
+    return chosen
+
+
+def _unpack_zip(archive: Path, staging: Path, max_bytes: int) -> None:
+    budget = _Budget(max_bytes)
+    with zipfile.ZipFile(archive) as zf:
+        infos = [i for i in zf.infolist() if not i.is_dir()]
+        for name, info in _pick([(i.filename, i) for i in infos]).items():
+            with zf.open(info) as src:  # the CRC is checked at the member's end
+                budget.copy(src, staging / name)
+
+
+def _unpack_tar(archive: Path, staging: Path, max_bytes: int) -> None:
+    budget = _Budget(max_bytes)
+    with tarfile.open(archive) as tf:
+        members: list[tuple[str, Any]] = []
+        scanned = 0
+        for member in tf:  # listing a compressed tar inflates it: skipped members count against the limit too
+            scanned += max(0, member.size)
+            if scanned > 4 * max_bytes:
+                raise PayloadTooLarge(f"the archive unpacks to more than the {max_bytes}-byte limit",
+                                      detail={"limit_bytes": max_bytes})
+            if len(members) >= MAX_ARCHIVE_MEMBERS:
+                raise InvalidFileError(_UPLOAD, f"more than {MAX_ARCHIVE_MEMBERS} archive members")
+            if member.isfile():
+                members.append((member.name, member))
+            elif not member.isdir() and _member_name(member.name) is not None:
+                raise InvalidFileError(_UPLOAD, f"{member.name[:200]!r} is not a regular file")
+        for name, member in _pick(members).items():
+            src = tf.extractfile(member)
+            if src is None:
+                raise InvalidFileError(_UPLOAD, f"{name} is not a regular file")
+            with src:
+                budget.copy(src, staging / name)
+
+
+def _scrub(exc: BaseException, *paths: Path) -> str:
+    """An archive error's text with no server path in it."""
+    text = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc) or type(exc).__name__
+    for path in paths:
+        text = text.replace(str(path), "<upload>")
+    return text[:300]

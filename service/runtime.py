@@ -20,7 +20,7 @@ from cadreg.errors import InvalidFileError, InvalidFrame, Overloaded, UnknownSit
 from .codec import PART_NAMES, REQUIRED_PARTS, parse_meta
 from .metrics import Metrics
 from .pool import JobResult, WorkerPool
-from .registry import SiteEntry, SiteRegistry, inspect_bundle
+from .registry import SiteEntry, SiteRegistry, check_site_id, inspect_bundle
 from .schemas import FrameMeta
 from .settings import Settings
 
@@ -118,28 +118,35 @@ class Service:
 
     def reload_site(self, site_id: str, bundle_dir: Path | None = None) -> SiteEntry:
         """(Re)load `site_id` from `bundle_dir` (default `<root>/<site_id>`): validate, have every worker load it,
-        then swap. Blocking; run in a thread."""
+        then swap. Answers within the request timeout even when a worker hangs (it is replaced). Blocking; run in
+        a thread."""
+        check_site_id(site_id)
         path = Path(bundle_dir) if bundle_dir is not None else self.registry.root / site_id
         if not (path / "site.json").is_file():
-            raise UnknownSite(f"no bundle for site {site_id!r} at {path}", detail={"site_id": site_id})
+            raise UnknownSite(f"no bundle for site {site_id!r}", detail={"site_id": site_id})
         with self.registry.reload_lock(site_id):
             entry = inspect_bundle(path)
             if entry.site_id != site_id:
-                raise InvalidFileError(path / "site.json", f"bundle is site {entry.site_id!r}, not {site_id!r}")
+                raise InvalidFileError(f"{site_id}/site.json", f"bundle is site {entry.site_id!r}, not {site_id!r}")
             self._load_everywhere(entry)
             self.registry.swap(entry)
             return entry
 
     def install_archive(self, site_id: str, archive: Path) -> SiteEntry:
-        """Unpack an uploaded bundle archive, validate it, install it as `<root>/<site_id>` and swap it in."""
+        """Unpack an uploaded bundle archive into a staging directory, hash-check it, have one worker prove that it
+        loads (a "probe": a bundle whose hashes agree may still hold no usable map), and only then install it as
+        `<root>/<site_id>`, have every worker load it and swap it in. Until the probe succeeds the served bundle on
+        disk is untouched; a bundle that cannot load answers InvalidFileError (422) naming why."""
+        check_site_id(site_id)
         with self.registry.reload_lock(site_id):
-            staged = self.registry.stage_archive(site_id, archive)
+            staged = self.registry.stage_archive(site_id, archive, self.settings.max_bundle_bytes)
             try:
-                entry = inspect_bundle(staged)
+                entry = _relative_errors(inspect_bundle, staged)
                 if entry.site_id != site_id:
                     raise InvalidFileError("upload", f"bundle is site {entry.site_id!r}, not {site_id!r}")
-            except Exception:
-                shutil.rmtree(staged.parent if staged.parent.name != ".incoming" else staged, ignore_errors=True)
+                self._probe(entry)
+            except BaseException:
+                shutil.rmtree(staged, ignore_errors=True)
                 raise
             target = self.registry.install(site_id, staged)
             # Moving the checked directory into place changes no byte: the entry is the staged one at its new path
@@ -149,7 +156,42 @@ class Service:
             self.registry.swap(entry)
             return entry
 
+    def _probe(self, entry: SiteEntry) -> None:
+        if self.pool is None:
+            raise Overloaded("the service is starting", retry_after_s=self.settings.retry_after_s)
+        try:
+            self.pool.probe_site(entry.site_id, entry.path).result(timeout=self._control_wait_s())
+        except InvalidFileError as exc:
+            raise _relative(exc, Path(entry.path)) from None
+
     def _load_everywhere(self, entry: SiteEntry) -> None:
         if self.pool is None:
             raise Overloaded("the service is starting", retry_after_s=self.settings.retry_after_s)
-        self.pool.load_site(entry.site_id, entry.path).result(timeout=self.settings.worker_start_timeout_s)
+        self.pool.load_site(entry.site_id, entry.path).result(timeout=self._control_wait_s())
+
+    def _control_wait_s(self) -> float:
+        # The pool settles a control by the request timeout (hung workers are replaced); the margin is for its
+        # dispatcher only, never the worker start timeout.
+        return self.settings.request_timeout_s + 5.0
+
+
+def _relative(exc: InvalidFileError, root: Path) -> InvalidFileError:
+    """The same error naming its file relative to the staged bundle ("upload/map.ply"), not by a server path."""
+    path = Path(exc.path) if exc.path else None
+    if path is None or not path.is_absolute():
+        return exc
+    try:
+        shown = "upload/" + str(path.resolve().relative_to(root.resolve()))
+    except ValueError:
+        shown = "upload"
+    reason = exc.message.split(": ", 1)[1] if exc.message.startswith(exc.path + ": ") else exc.message
+    reason = reason.replace(str(root.resolve()), "upload").replace(str(root), "upload")
+    detail = {k: v for k, v in exc.detail.items() if k != "path"}
+    return type(exc)(shown, reason, detail=detail)
+
+
+def _relative_errors(check, staged: Path):
+    try:
+        return check(staged)
+    except InvalidFileError as exc:
+        raise _relative(exc, staged) from None

@@ -84,7 +84,8 @@ class Settings(BaseSettings):
     retry_after_s: float = Field(1.0, gt=0, le=3600, description="longest wait a 503 asks for; overload answers ask "
                                  "for the queue's expected drain time (detail.retry_after_s), the header rounds up")
     max_upload_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="largest localize request body")
-    max_bundle_bytes: int = Field(2 * 1024 * 1024 * 1024, ge=1024, description="largest site archive uploaded by PUT")
+    max_bundle_bytes: int = Field(2 * 1024 * 1024 * 1024, ge=1024, description="largest site archive uploaded by PUT, "
+                                  "and the most its bundle files may unpack to (counted while unpacking)")
     admin_token: SecretStr | None = Field(None, description="bearer token of the admin routes; None = admin routes refuse")
     zenoh_enabled: bool = True
     zenoh_mode: Literal["peer", "client", "router"] = "peer"

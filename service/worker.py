@@ -7,11 +7,12 @@ the functions. Messages (tuples over a `multiprocessing` Pipe; pydantic models t
     start (spawn args) worker_main(conn, [(site_id, bundle_dir), ...], LocalizeConfig, test_hooks)
     parent -> worker   ("localize", job_id, site_id, version, parts: dict[str, bytes], meta: FrameMeta)
                        ("load", job_id, site_id, path)     load (or reload) one site; keeps the previous version
+                       ("probe", job_id, site_id, path)    build the site's localizer and drop it (an upload's check)
                        ("stop",)
     worker -> parent   ("ready", pid, [[site_id, version], ...])
                        ("result", job_id, True, result_dict, version_used)
                        ("result", job_id, False, error_body, None)
-                       ("loaded", job_id, True, [site_id, version] | error_body)
+                       ("loaded", job_id, True, [site_id, version] | error_body)   (answers load and probe)
                        ("failed", error_body)              start-up failed (a site could not be loaded)
 """
 
@@ -55,21 +56,36 @@ class _Sites:
         self.config = config
         self.by_site: dict[str, OrderedDict[str, Any]] = {}
 
-    def load(self, site_id: str, path: str) -> str:
-        from cadreg.errors import UnknownSite
+    def build(self, site_id: str, path: str) -> tuple[str, Any]:
+        """(version, warmed Localizer) of the bundle at `path`. Raises the bundle's InvalidFileError, or one saying
+        why the localizer cannot be built (an empty map, points that break a search structure)."""
+        from cadreg.errors import CadregError, InvalidFileError, UnknownSite
         from cadreg.localize.localizer import Localizer
         from cadreg.site.bundle import Site
 
         site = Site.load(path)
         if site.site_id != site_id:
             raise UnknownSite(f"bundle at {path} is site {site.site_id!r}, expected {site_id!r}")
-        localizer = Localizer.from_site(site, self.config).warm()
+        try:
+            if len(site.map) == 0:
+                raise ValueError("map.ply has no points")
+            localizer = Localizer.from_site(site, self.config).warm()
+        except CadregError:
+            raise
+        except Exception as exc:
+            log.exception("site %s cannot be loaded", site_id)
+            why = str(exc) or type(exc).__name__
+            raise InvalidFileError(f"{site_id}/map.ply", f"the site cannot be loaded: {why}"[:300]) from None
+        return site.version, localizer
+
+    def load(self, site_id: str, path: str) -> str:
+        version, localizer = self.build(site_id, path)
         versions = self.by_site.setdefault(site_id, OrderedDict())
-        versions.pop(site.version, None)
-        versions[site.version] = localizer
+        versions.pop(version, None)
+        versions[version] = localizer
         while len(versions) > VERSIONS_KEPT:
             versions.popitem(last=False)
-        return site.version
+        return version
 
     def get(self, site_id: str, version: str | None) -> tuple[Any, str]:
         from cadreg.errors import UnknownSite
@@ -148,6 +164,14 @@ def worker_main(conn, sites: list[tuple[str, str]], localize_config: LocalizeCon
             _, job_id, site_id, path = msg
             try:
                 reply = ("loaded", job_id, True, [site_id, loaded.load(site_id, path)])
+            except Exception as exc:
+                reply = ("loaded", job_id, False, _error_body(exc))
+        elif kind == "probe":
+            _, job_id, site_id, path = msg
+            try:
+                version, _localizer = loaded.build(site_id, path)
+                del _localizer  # only the check was wanted: its memory goes now, not at the next build
+                reply = ("loaded", job_id, True, [site_id, version])
             except Exception as exc:
                 reply = ("loaded", job_id, False, _error_body(exc))
         else:
