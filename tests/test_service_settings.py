@@ -143,8 +143,13 @@ def test_cadreg_serve_end_to_end(scene0470_site_dir, tmp_path) -> None:
         out, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err[-2000:]
     log = out + err
-    assert re.search(r"request_id=serve-test-1 POST /v1/sites/scene0470/localize site=scene0470 status=200 code=ok ms=\d", log)
-    assert re.search(r"request_id=serve-test-2 GET /v1/sites/elsewhere site=elsewhere status=404 code=unknown_site", log)
+    events = [json.loads(line[line.index("{"):]) for line in log.splitlines() if '{"event": "http_request"' in line]
+    by_id = {e["request_id"]: e for e in events}
+    assert {k: by_id["serve-test-1"][k] for k in ("method", "path", "site", "status", "code")} == {
+        "method": "POST", "path": "/v1/sites/scene0470/localize", "site": "scene0470", "status": 200, "code": "ok"}
+    assert by_id["serve-test-1"]["ms"] > 0
+    assert {k: by_id["serve-test-2"][k] for k in ("method", "site", "status", "code")} == {
+        "method": "GET", "site": "elsewhere", "status": 404, "code": "unknown_site"}
     assert "zenoh peer listening on ['tcp/127.0.0.1:" in log
     assert f"localize config: {{'match': {{'top_k': {config_top_k}}}}}" in log
 
