@@ -27,9 +27,10 @@ from urllib.parse import quote
 import httpx
 import numpy as np
 
+from .core import ClientCore
 from .errors import BadResponse, ClientError, ClientTimeout, Unreachable, error_from_body
-from .frames import EncodedFrame, FolderCache, FrameLike, to_encoded
-from .retry import RetryHook, RetryLoop, RetryPolicy
+from .frames import FrameLike
+from .retry import RetryHook, RetryPolicy
 
 DEFAULT_CONNECT_TIMEOUT_S = 5.0
 DEFAULT_READ_TIMEOUT_S = 120.0
@@ -97,7 +98,7 @@ def _result(response: httpx.Response) -> Any:
         raise BadResponse(f"answer is not JSON: {response.text[:200]!r}", status=response.status_code) from None
 
 
-class _Base:
+class _Base(ClientCore):
     def __init__(
         self,
         base_url: str,
@@ -109,21 +110,9 @@ class _Base:
         on_retry: RetryHook | None,
         top_k: int | None,
     ) -> None:
+        super().__init__(retry=retry, on_retry=on_retry, deadline_s=deadline_s, top_k=top_k)
         self.base_url = base_url.rstrip("/")
         self.timeout = httpx.Timeout(read_timeout_s, connect=connect_timeout_s)
-        self.retry = retry or RetryPolicy()
-        self.top_k = top_k
-        self._retry_loop = RetryLoop(self.retry, deadline_s=deadline_s, on_retry=on_retry)
-        self._folders = FolderCache()
-
-    @property
-    def retries(self) -> int:
-        """Retries made over this client's life (for load reports)."""
-        return self._retry_loop.count
-
-    def _encode(self, frame: FrameLike, frame_id: str | None, top_k: int | None) -> EncodedFrame:
-        enc = to_encoded(frame, top_k=top_k if top_k is not None else self.top_k, cache=self._folders)
-        return enc if frame_id is None else enc.with_frame_id(frame_id)
 
     @staticmethod
     def _localize_path(site_id: str) -> str:
@@ -171,23 +160,13 @@ class Client(_Base):
         self._http.close()
 
     def _request(self, method: str, path: str, **kwargs: Any) -> Any:
-        started = time.monotonic()
-        attempt = 0
-        pause = self._retry_loop.pause.wait_s(started)
-        if pause > 0:
-            self._sleep(pause)
-        while True:
+        def send() -> Any:
             try:
                 return _result(self._http.request(method, path, **kwargs))
             except httpx.HTTPError as exc:
-                error = _transport_error(exc, self.base_url + path)
-            except ClientError as exc:
-                error = exc
-            delay = self._retry_loop.next_delay(attempt, error, started)
-            if delay is None:
-                raise error
-            self._sleep(delay)
-            attempt += 1
+                raise _transport_error(exc, self.base_url + path) from None
+
+        return self._retry_loop.call(send, self._sleep)
 
     def localize(
         self, site_id: str, frame: FrameLike, *, frame_id: str | None = None, top_k: int | None = None
@@ -197,7 +176,7 @@ class Client(_Base):
         frame : cadreg Frame (encoded as PNG), EncodedFrame (sent as is), or (folder, index) of a recorded-frames
             folder (its files sent as they are).
         """
-        enc = self._encode(frame, frame_id, top_k)
+        enc = self.encode(frame, frame_id=frame_id, top_k=top_k)
         files, data = enc.multipart()
         return self._request("POST", self._localize_path(site_id), files=files, data=data)
 
@@ -258,30 +237,20 @@ class AsyncClient(_Base):
         await self._http.aclose()
 
     async def _request(self, method: str, path: str, **kwargs: Any) -> Any:
-        started = time.monotonic()
-        attempt = 0
-        pause = self._retry_loop.pause.wait_s(started)
-        if pause > 0:
-            await self._sleep(pause)
-        while True:
+        async def send() -> Any:
             try:
                 return _result(await self._http.request(method, path, **kwargs))
             except httpx.HTTPError as exc:
-                error = _transport_error(exc, self.base_url + path)
-            except ClientError as exc:
-                error = exc
-            delay = self._retry_loop.next_delay(attempt, error, started)
-            if delay is None:
-                raise error
-            await self._sleep(delay)
-            attempt += 1
+                raise _transport_error(exc, self.base_url + path) from None
+
+        return await self._retry_loop.acall(send, self._sleep)
 
     async def localize(
         self, site_id: str, frame: FrameLike, *, frame_id: str | None = None, top_k: int | None = None
     ) -> dict[str, Any]:
         """As `Client.localize`. Encoding a Frame or a folder entry runs here, on the event loop's thread; encode
         up front (`clients.frames.encode_*`) and pass EncodedFrame in hot loops."""
-        enc = self._encode(frame, frame_id, top_k)
+        enc = self.encode(frame, frame_id=frame_id, top_k=top_k)
         files, data = enc.multipart()
         return await self._request("POST", self._localize_path(site_id), files=files, data=data)
 

@@ -7,15 +7,17 @@ connection dropped before an answer). Never retried: 4xx answers (the same reque
 
 from __future__ import annotations
 
+import asyncio
 import random
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Awaitable, Callable, TypeVar
 
 from .errors import ClientError
 
 RetryHook = Callable[[int, ClientError, float], None]  # (attempt number from 1, the error, delay_s before the retry)
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -103,6 +105,49 @@ class RetryLoop:
         if self.on_retry is not None:
             self.on_retry(attempt + 1, error, delay)
         return delay
+
+    def call(self, send: Callable[[], T], sleep: Callable[[float], None] = time.sleep) -> T:
+        """`send()` until it returns, retrying the ClientErrors the policy allows; the last error is raised.
+        A fresh call first waits out the client's pause. `sleep` waits (tests record instead of sleeping)."""
+        attempts = _Attempts(self)
+        while True:
+            if attempts.wait_s is not None:
+                sleep(attempts.wait_s)
+            try:
+                return send()
+            except ClientError as error:
+                attempts.failed(error)
+
+    async def acall(self, send: Callable[[], Awaitable[T]], sleep: Callable[[float], Awaitable[None]] = asyncio.sleep) -> T:
+        """`call` for a coroutine function `send` and an awaitable `sleep`."""
+        attempts = _Attempts(self)
+        while True:
+            if attempts.wait_s is not None:
+                await sleep(attempts.wait_s)
+            try:
+                return await send()
+            except ClientError as error:
+                attempts.failed(error)
+
+
+class _Attempts:
+    """One call's place in its RetryLoop: when it began, how many retries it made, what to wait before the next
+    send (None: send at once). Shared by `call` and `acall` so that sync and async retry the same way."""
+
+    def __init__(self, loop: RetryLoop) -> None:
+        self.loop = loop
+        self.started = time.monotonic()
+        self.retry = 0
+        pause = loop.pause.wait_s(self.started)
+        self.wait_s: float | None = pause if pause > 0 else None
+
+    def failed(self, error: ClientError) -> None:
+        """Set the wait before the next send, or raise `error` when it is not to be retried."""
+        delay = self.loop.next_delay(self.retry, error, self.started)
+        if delay is None:
+            raise error
+        self.wait_s = delay
+        self.retry += 1
 
 
 NO_RETRY = RetryPolicy(max_retries=0)

@@ -9,10 +9,12 @@
                 elif r.error: ...                          # the service answered with an error body
                 else: r.result["T_map_camera"]
 
-The session is a zenoh *client* connected to the given endpoint(s) (the service's `--zenoh-listen`), with
-multicast and gossip scouting off (DESIGN §9), so nothing leaves loopback unless asked. `localize` sends the
-`service.codec` envelope with `session.get(key, payload=..., timeout=...)`; an `ok` reply is the result JSON, an
-`err` reply the error body, raised as the typed class of `clients.errors`. Retries as over HTTP (`RetryPolicy`):
+Keys, encodings and the session config are the service's (`service.zenoh_wire`). The session is a zenoh *client*
+connected to the given endpoint(s) (the service's `--zenoh-listen`), with multicast and gossip scouting off
+(DESIGN §9), so nothing leaves loopback unless asked. `localize` sends the `service.codec` envelope with
+`session.get(key, payload=..., timeout=...)`; a reply in the result encoding is the result JSON, one in the error
+encoding the error body, raised as the typed class of `clients.errors`; pose messages are told apart the same way,
+never by what their body holds. Frame encoding and retries are `clients.core`'s, as over HTTP (`RetryPolicy`):
 `overloaded` / `worker_crashed` and "no queryable answered" (`unreachable`, e.g. the service is still starting) are
 retried; everything else, and the query timeout (`client_timeout`), is not.
 
@@ -22,7 +24,6 @@ Callbacks never block and never call zenoh: subscriber samples go to a queue dra
 from __future__ import annotations
 
 import itertools
-import json
 import queue
 import time
 from dataclasses import dataclass
@@ -30,62 +31,37 @@ from typing import Any, Iterable, Iterator, Sequence
 
 import zenoh
 
+from cadreg.errors import CadregError
+from service import codec, zenoh_wire as wire
+from service.zenoh_wire import frames_key, localize_key, poses_key  # noqa: F401 - part of this module's API
 
+from .core import ClientCore
 from .errors import BadResponse, ClientError, ClientTimeout, Unreachable, error_from_body
-from .frames import EncodedFrame, FolderCache, FrameLike, to_encoded
-from .retry import RetryHook, RetryLoop, RetryPolicy
+from .frames import FrameLike
+from .retry import RetryHook, RetryPolicy
 
 DEFAULT_QUERY_TIMEOUT_S = 120.0
-_BAD_KEY_CHARS = set("*$#?/ ")
 
 
 def session_config(connect: Sequence[str] = (), listen: Sequence[str] = (), *, mode: str = "client") -> zenoh.Config:
     """A zenoh Config with scouting off (no multicast, no gossip) and only the given endpoints."""
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", json.dumps(mode))
-    cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
-    cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    cfg.insert_json5("scouting/gossip/enabled", "false")
-    return cfg
+    return wire.session_config(mode=mode, listen=listen, connect=connect)
 
 
-def localize_key(site_id: str) -> str:
-    return f"cadreg/{_key_part(site_id, 'site id')}/localize"
-
-
-def frames_key(site_id: str, device_id: str) -> str:
-    return f"cadreg/{_key_part(site_id, 'site id')}/frames/{_key_part(device_id, 'device id')}"
-
-
-def poses_key(site_id: str, device_id: str) -> str:
-    return f"cadreg/{_key_part(site_id, 'site id')}/poses/{_key_part(device_id, 'device id')}"
-
-
-def _key_part(value: str, what: str) -> str:
-    if not value or _BAD_KEY_CHARS & set(value):
-        raise ValueError(f"{what} {value!r} cannot be part of a zenoh key (no empty, '*', '$', '#', '?', '/', ' ')")
-    return value
-
-
-def _decode_reply_payload(data: bytes, *, error: bool) -> dict[str, Any]:
+def _json_object(data: bytes, what: str) -> dict[str, Any]:
     try:
-        body = json.loads(data)
-    except (UnicodeDecodeError, json.JSONDecodeError):
-        raise BadResponse(f"zenoh reply is not JSON: {data[:200]!r}") from None
-    if not isinstance(body, dict):
-        raise BadResponse(f"zenoh reply is not a JSON object: {data[:200]!r}")
-    if error:
-        raise error_from_body(body)
-    return body
+        return codec.decode_result(data)
+    except CadregError as exc:
+        raise BadResponse(f"{what}: {exc.message}: {data[:200]!r}") from None
 
 
-class ZenohClient:
+class ZenohClient(ClientCore):
     """A zenoh session to the cadreg service.
 
     connect : endpoint or endpoints of the service, e.g. "tcp/127.0.0.1:7447" (ignored when `session` is given).
     timeout_s : query timeout of `localize` (a localization takes seconds on a busy machine).
     session : an already open zenoh Session to use (not closed by `close`).
+    retry, on_retry, top_k, deadline_s : as for the HTTP clients (`clients.core.ClientCore`).
     """
 
     def __init__(
@@ -99,12 +75,9 @@ class ZenohClient:
         session: zenoh.Session | None = None,
         deadline_s: float | None = None,
     ) -> None:
+        super().__init__(retry=retry, on_retry=on_retry, deadline_s=deadline_s, top_k=top_k)
         endpoints = [connect] if isinstance(connect, str) else list(connect)
         self.timeout_s = float(timeout_s)
-        self.retry = retry or RetryPolicy()
-        self.top_k = top_k
-        self._retry_loop = RetryLoop(self.retry, deadline_s=deadline_s, on_retry=on_retry)
-        self._folders = FolderCache()
         if session is not None:
             self.session, self._owns = session, False
         else:
@@ -116,11 +89,6 @@ class ZenohClient:
                 raise Unreachable(f"cannot open a zenoh session to {', '.join(endpoints)}: {exc}") from None
             self._owns = True
 
-    @property
-    def retries(self) -> int:
-        """Retries made over this client's life (for load reports)."""
-        return self._retry_loop.count
-
     def __enter__(self) -> "ZenohClient":
         return self
 
@@ -131,24 +99,25 @@ class ZenohClient:
         if self._owns and not self.session.is_closed():
             self.session.close()
 
-    def _encode(self, frame: FrameLike, frame_id: str | None, top_k: int | None) -> EncodedFrame:
-        enc = to_encoded(frame, top_k=top_k if top_k is not None else self.top_k, cache=self._folders)
-        return enc if frame_id is None else enc.with_frame_id(frame_id)
-
     def query_once(self, site_id: str, payload: bytes, timeout_s: float | None = None) -> dict[str, Any]:
-        """One query, no retries: the result dict, or the typed error."""
+        """One query, no retries: the result dict, or the typed error. What a reply is comes from its encoding
+        (service/zenoh_wire.py), never from its body."""
         timeout_s = self.timeout_s if timeout_s is None else timeout_s
         key = localize_key(site_id)
         started = time.monotonic()
         try:
-            replies = self.session.get(key, payload=payload, timeout=timeout_s)
-            for reply in replies:
-                if reply.ok is not None:
-                    return _decode_reply_payload(reply.ok.payload.to_bytes(), error=False)
-                data = reply.err.payload.to_bytes()
-                if data == b"Timeout" and time.monotonic() - started >= 0.9 * timeout_s:
-                    break  # zenoh's own reply when the query timed out
-                return _decode_reply_payload(data, error=True)
+            for reply in self.session.get(key, payload=payload, encoding=wire.ENVELOPE_ENCODING, timeout=timeout_s):
+                sample = reply.ok if reply.ok is not None else reply.err
+                kind = wire.body_kind(sample.encoding)
+                data = sample.payload.to_bytes()
+                if reply.ok is not None and kind == "result":
+                    return _json_object(data, "zenoh reply")
+                if reply.err is not None and kind == "error":
+                    raise error_from_body(_json_object(data, "zenoh error reply"))
+                if reply.err is not None and time.monotonic() - started >= 0.9 * timeout_s:
+                    break  # zenoh's own error reply (b"Timeout") when the query timed out
+                raise BadResponse(f"zenoh {'reply' if reply.ok is not None else 'error reply'} on {key} with "
+                                  f"encoding {str(sample.encoding)!r} is no cadreg answer: {data[:200]!r}")
         except zenoh.ZError as exc:
             raise Unreachable(f"zenoh query on {key} failed: {exc}") from None
         elapsed = time.monotonic() - started
@@ -170,24 +139,12 @@ class ZenohClient:
 
         Safe to call from several threads at once (each call is its own zenoh query).
         """
-        return self.localize_envelope(site_id, self._encode(frame, frame_id, top_k).envelope(), timeout_s=timeout_s)
+        envelope = self.encode(frame, frame_id=frame_id, top_k=top_k).envelope()
+        return self.localize_envelope(site_id, envelope, timeout_s=timeout_s)
 
     def localize_envelope(self, site_id: str, payload: bytes, *, timeout_s: float | None = None) -> dict[str, Any]:
         """`localize` for an already packed envelope (`EncodedFrame.envelope()`), with the retries."""
-        started = time.monotonic()
-        attempt = 0
-        pause = self._retry_loop.pause.wait_s(started)
-        if pause > 0:
-            time.sleep(pause)
-        while True:
-            try:
-                return self.query_once(site_id, payload, timeout_s)
-            except ClientError as error:
-                delay = self._retry_loop.next_delay(attempt, error, started)
-                if delay is None:
-                    raise
-                time.sleep(delay)
-                attempt += 1
+        return self._retry_loop.call(lambda: self.query_once(site_id, payload, timeout_s))
 
     def stream(
         self, site_id: str, device_id: str, *, lost_after_s: float = 10.0, drop_when_congested: bool = False
@@ -242,14 +199,15 @@ class PoseStream:
         self.foreign = 0
         self._pending: dict[str, float] = {}  # frame id -> monotonic publish time
         self._resolved: set[str] = set()
-        self._inbox: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        self._inbox: queue.SimpleQueue[zenoh.Sample] = queue.SimpleQueue()
         self._ids = itertools.count()
         session = client.session
-        # the callback only enqueues: it runs on a zenoh thread that must not block
-        self._sub = session.declare_subscriber(poses_key(site_id, device_id),
-                                               lambda sample: self._inbox.put(sample.payload.to_bytes()))
+        # the callback is the enqueue itself: it runs on a zenoh thread that must not block; the caller's thread
+        # reads the samples in `poll` (a queue with a timed get, which zenoh's channels do not offer)
+        self._sub = session.declare_subscriber(poses_key(site_id, device_id), self._inbox.put)
         cc = zenoh.CongestionControl.DROP if drop_when_congested else zenoh.CongestionControl.BLOCK
-        self._pub = session.declare_publisher(frames_key(site_id, device_id), congestion_control=cc)
+        self._pub = session.declare_publisher(frames_key(site_id, device_id), congestion_control=cc,
+                                              encoding=wire.ENVELOPE_ENCODING)
 
     def __enter__(self) -> "PoseStream":
         return self
@@ -279,7 +237,7 @@ class PoseStream:
 
     def send(self, frame: FrameLike, *, frame_id: str | None = None) -> str:
         """Publish a frame; returns its frame id (the given one, the frame's own, or `<device>-<n>`)."""
-        enc = self.client._encode(frame, None, None)  # noqa: SLF001 - same encoding rules as localize
+        enc = self.client.encode(frame)  # the same encoding rules as localize
         fid = frame_id or enc.frame_id or f"{self.device_id}-{next(self._ids)}"
         if fid in self._pending:
             raise ValueError(f"frame id {fid!r} is already in flight")
@@ -293,12 +251,12 @@ class PoseStream:
         """Answers that arrived (waiting up to `timeout_s` for the first), then frames now lost."""
         out: list[StreamResult] = []
         try:
-            data = self._inbox.get(timeout=timeout_s) if timeout_s > 0 else self._inbox.get_nowait()
+            sample = self._inbox.get(timeout=timeout_s) if timeout_s > 0 else self._inbox.get_nowait()
             while True:
-                r = self._match(data)
+                r = self._match(sample)
                 if r is not None:
                     out.append(r)
-                data = self._inbox.get_nowait()
+                sample = self._inbox.get_nowait()
         except queue.Empty:
             pass
         now = time.monotonic()
@@ -309,17 +267,18 @@ class PoseStream:
                 out.append(StreamResult(fid, lost=True, latency_ms=(now - sent) * 1e3))
         return out
 
-    def _match(self, data: bytes) -> StreamResult | None:
+    def _match(self, sample: zenoh.Sample) -> StreamResult | None:
+        # a result or an error body by the sample's encoding: either may hold any key (a result may well carry a
+        # "code"), so the body is no guide
+        kind = wire.body_kind(sample.encoding)
         try:
-            body = json.loads(data)
-        except (UnicodeDecodeError, json.JSONDecodeError):
+            body = None if kind is None else _json_object(sample.payload.to_bytes(), "pose message")
+        except BadResponse:
             body = None
-        if not isinstance(body, dict):
+        if body is None:
             self.foreign += 1
             return None
-        is_error = "code" in body and "status" not in body
-        detail = body.get("detail") if isinstance(body.get("detail"), dict) else {}
-        fid = body.get("frame_id", detail.get("frame_id"))
+        fid = wire.stream_frame_id(body, kind)
         if fid not in self._pending:
             if fid in self._resolved:
                 self.late += 1
@@ -329,7 +288,7 @@ class PoseStream:
         sent = self._pending.pop(fid)
         self._resolved.add(fid)
         latency_ms = (time.monotonic() - sent) * 1e3
-        if is_error:
+        if kind == "error":
             return StreamResult(fid, error=error_from_body(body), latency_ms=latency_ms)
         return StreamResult(fid, result=body, latency_ms=latency_ms)
 

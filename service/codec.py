@@ -9,7 +9,8 @@ Over zenoh they travel in one envelope:
     b"CDRG" | version (1 byte, = 1) | L (uint32 little-endian) | L bytes of JSON header | part bytes
     header = {"meta": FrameMeta, "parts": {"color": [offset, length], "depth": [...], "labels": [...]}}
     offsets count from the first byte after the header.
-Results are UTF-8 JSON objects (`application/json`); non-finite floats become null (JSON has no NaN).
+Results and error bodies are UTF-8 JSON objects; non-finite floats become null (JSON has no NaN). Over zenoh
+the two carry distinct encodings, so that a receiver never guesses which it got (service/zenoh_wire.py).
 Every decoding failure raises `InvalidFrame` naming what is wrong.
 """
 
@@ -41,9 +42,6 @@ MAX_IMAGE_PIXELS = 16384 * 16384 // 4
 PART_NAMES = ("color", "depth", "labels")
 REQUIRED_PARTS = ("color", "depth")
 PNG_COMPRESS_LEVEL = 1  # DESIGN §9: level 1 costs ~20-30 ms per 640x480 image, Pillow's default ~90 ms
-RESULT_ENCODING = "application/json"
-ERROR_ENCODING = "application/json"
-ENVELOPE_ENCODING = "application/octet-stream"
 
 
 # --- meta ---------------------------------------------------------------------------------------------------------
@@ -54,11 +52,8 @@ def parse_meta(raw: str | bytes | dict[str, Any] | FrameMeta) -> FrameMeta:
     if isinstance(raw, FrameMeta):
         return raw
     if isinstance(raw, (str, bytes, bytearray)):
-        try:
-            raw = json.loads(raw)
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise InvalidFrame(f"meta is not valid JSON: {exc}") from None
-    if not isinstance(raw, dict):
+        raw = _json_object(raw, "meta", InvalidFrame)
+    elif not isinstance(raw, dict):
         raise InvalidFrame("meta must be a JSON object")
     try:
         return FrameMeta.model_validate(raw)
@@ -311,10 +306,15 @@ def encode_result(result: dict[str, Any]) -> bytes:
 
 def decode_result(payload: bytes | bytearray | str) -> dict[str, Any]:
     """Parse a result (or error body) JSON payload into a dict; a malformed one raises CadregError (`internal`)."""
+    return _json_object(payload, "result", CadregError)
+
+
+def _json_object(text: bytes | bytearray | str, what: str, error: type[CadregError]) -> dict[str, Any]:
+    """A JSON object from its text; raises `error` naming `what` for anything else."""
     try:
-        value = json.loads(payload)
+        value = json.loads(text)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CadregError(f"result is not valid JSON: {exc}") from None
+        raise error(f"{what} is not valid JSON: {exc}") from None
     if not isinstance(value, dict):
-        raise CadregError("result must be a JSON object")
+        raise error(f"{what} must be a JSON object")
     return value

@@ -1,19 +1,22 @@
 """The zenoh front end, in the HTTP app's process, on the same worker pool.
 
-Key expressions:
+Keys, encodings and the session config are the wire contract of service/zenoh_wire.py:
     cadreg/<site_id>/localize              queryable: query payload = frame envelope (service/codec.py);
-                                           reply = result JSON (application/json), or reply_err with the error body
+                                           reply = the result (RESULT_ENCODING), or reply_err with the error body
+                                           (ERROR_ENCODING)
     cadreg/<site_id>/frames/<device_id>    stream mode: subscribed (wildcard cadreg/*/frames/*), payload = envelope
-    cadreg/<site_id>/poses/<device_id>     stream mode: result JSON published per frame, frame id echoed; errors are
-                                           published as the error body with detail.frame_id
-zenoh callbacks only enqueue (zenoh-python: never block or call zenoh inside a callback); threads of our own drain
-the queues, submit to the pool and reply/publish when the future is done. A streaming device that outruns the pool
-loses its oldest frames (bounded deque per device), counted in cadreg_zenoh_dropped_frames_total.
+    cadreg/<site_id>/poses/<device_id>     stream mode: the result published per frame, frame id echoed; errors are
+                                           published as the error body (ERROR_ENCODING) with detail.frame_id
+
+No callbacks of ours run on zenoh's threads (zenoh-python: never block or call zenoh there): the queryable and the
+subscriber deliver into zenoh's own FIFO channels, and threads of our own drain them. One thread turns queries into
+pool jobs; one moves frames into a bounded deque per device (a device that outruns the pool loses its oldest
+frames, counted in cadreg_zenoh_dropped_frames_total); one hands each device's oldest frame to the pool, one frame
+in flight per device; one replies and publishes when the jobs are done.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import queue
 import threading
@@ -23,34 +26,42 @@ from collections import deque
 from dataclasses import dataclass, field
 import zenoh
 
-from cadreg.errors import CadregError, ConfigError, InvalidFrame, Overloaded
+from cadreg.errors import CadregError, ConfigError, InvalidFrame, Overloaded, UnknownSite
 
-from .codec import ERROR_ENCODING, RESULT_ENCODING, encode_result, unpack_envelope
+from . import zenoh_wire as wire
+from .codec import encode_result, unpack_envelope
 from .errors import error_body
 from .runtime import Service
 from .settings import Settings
 
 log = logging.getLogger("cadreg.service.zenoh")
 
-QUERY_KEY = "cadreg/*/localize"
-FRAMES_KEY = "cadreg/*/frames/*"
 _OVERLOAD_RETRY_S = 0.02  # a stream frame refused by a full pool waits this long before the next try
+# zenoh's FIFO channels block zenoh's delivery when full, which pushes back on the senders instead of losing
+# messages unseen; our drains only move items along (no decoding, no pool wait), so these depths are rarely reached.
+# Frames are dropped, and counted, in the per-device deques, not here.
+QUERY_CHANNEL_SIZE = 256
+FRAME_CHANNEL_SIZE = 256
 
 
 def zenoh_config(settings: Settings) -> zenoh.Config:
-    """A zenoh Config from the settings; multicast and gossip scouting are off unless asked for."""
-    config = zenoh.Config()
-    config.insert_json5("mode", json.dumps(settings.zenoh_mode))
-    config.insert_json5("listen/endpoints", json.dumps(list(settings.zenoh_listen)))
-    config.insert_json5("connect/endpoints", json.dumps(list(settings.zenoh_connect)))
-    config.insert_json5("scouting/multicast/enabled", json.dumps(settings.zenoh_multicast_scouting))
-    config.insert_json5("scouting/gossip/enabled", json.dumps(settings.zenoh_gossip_scouting))
-    return config
+    """The service session's zenoh Config from the settings (zenoh_wire.session_config)."""
+    return wire.session_config(
+        mode=settings.zenoh_mode,
+        listen=settings.zenoh_listen,
+        connect=settings.zenoh_connect,
+        multicast_scouting=settings.zenoh_multicast_scouting,
+        gossip_scouting=settings.zenoh_gossip_scouting,
+    )
 
 
-def _site_of(key: str, suffix_parts: int) -> tuple[str, list[str]]:
-    chunks = key.split("/")
-    return chunks[1], chunks[2 : 2 + suffix_parts]
+def _query_site(key: zenoh.KeyExpr) -> str:
+    """The site of a query's key; a wildcard query (`cadreg/**`, which our queryable matches too) names none."""
+    try:
+        return wire.parse_key(key).site_id
+    except ValueError:
+        raise UnknownSite(f"the query key {str(key)!r} names no single site (ask cadreg/<site_id>/localize)",
+                          detail={"key": str(key)}) from None
 
 
 @dataclass
@@ -66,10 +77,9 @@ class ZenohServer:
         self.service = service
         self.settings = settings
         self.session: zenoh.Session | None = None
-        self._queryable = None
-        self._subscriber = None
-        self._queries: queue.SimpleQueue = queue.SimpleQueue()
-        self._outbox: queue.SimpleQueue = queue.SimpleQueue()  # (callable,) run on the reply thread
+        self._queryable: zenoh.Queryable | None = None
+        self._subscriber: zenoh.Subscriber | None = None
+        self._outbox: queue.SimpleQueue = queue.SimpleQueue()  # callables run on the reply thread; None ends it
         self._devices: dict[tuple[str, str], _Device] = {}
         self._cond = threading.Condition()
         self._stopping = False
@@ -85,10 +95,11 @@ class ZenohServer:
         except zenoh.ZError as exc:
             raise ConfigError(f"zenoh could not open a {self.settings.zenoh_mode} session listening on "
                               f"{self.settings.zenoh_listen}, connecting to {self.settings.zenoh_connect}: {exc}") from None
-        self._queryable = self.session.declare_queryable(QUERY_KEY, self._on_query)
-        self._subscriber = self.session.declare_subscriber(FRAMES_KEY, self._on_frame)
-        for target, name in ((self._drain_queries, "queries"), (self._drain_outbox, "replies"),
-                             (self._drain_streams, "streams")):
+        self._queryable = self.session.declare_queryable(wire.QUERY_KEYS, zenoh.handlers.FifoChannel(QUERY_CHANNEL_SIZE))
+        self._subscriber = self.session.declare_subscriber(wire.FRAMES_KEYS,
+                                                           zenoh.handlers.FifoChannel(FRAME_CHANNEL_SIZE))
+        for target, name in ((self._drain_queries, "queries"), (self._drain_frames, "frames"),
+                             (self._drain_streams, "streams"), (self._drain_outbox, "replies")):
             t = threading.Thread(target=target, name=f"cadreg-zenoh-{name}", daemon=True)
             t.start()
             self._threads.append(t)
@@ -96,66 +107,45 @@ class ZenohServer:
                  self.settings.zenoh_listen, self.settings.zenoh_connect)
 
     def stop(self) -> None:
-        with self._cond:
-            self._stopping = True
-            self._cond.notify_all()
-        self._queries.put(None)
-        self._outbox.put(None)
-        for t in self._threads:
-            t.join(5.0)
+        # undeclaring closes zenoh's channels, which ends the query and frame drains' iterations
         for entity in (self._queryable, self._subscriber):
             if entity is not None:
                 try:
                     entity.undeclare()
                 except Exception:  # the session may already be closing; nothing to recover
                     log.debug("undeclare failed", exc_info=True)
+        with self._cond:
+            self._stopping = True
+            self._cond.notify_all()
+        self._outbox.put(None)
+        for t in self._threads:
+            t.join(5.0)
         if self.session is not None:
             self.session.close()
-
-    # --- callbacks: enqueue only ------------------------------------------------------------------------------------
-
-    def _on_query(self, query: zenoh.Query) -> None:
-        self._queries.put((query, time.perf_counter()))
-
-    def _on_frame(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        site_id, rest = _site_of(key, 2)
-        if len(rest) != 2:
-            return
-        device_key = (site_id, rest[1])
-        payload = sample.payload.to_bytes()
-        with self._cond:
-            device = self._devices.get(device_key)
-            if device is None:
-                device = self._devices[device_key] = _Device(site_id, rest[1])
-            if len(device.frames) >= self.settings.stream_queue_per_device:
-                device.frames.popleft()  # the device outruns the pool: the oldest frame is the least useful
-                self.service.metrics.zenoh_dropped.labels(site_id).inc()
-            device.frames.append((payload, time.perf_counter()))
-            self._cond.notify()
 
     # --- queries ----------------------------------------------------------------------------------------------------
 
     def _drain_queries(self) -> None:
-        while True:
-            item = self._queries.get()
-            if item is None:
-                return
-            query, t0 = item
-            request_id = uuid.uuid4().hex
-            key = str(query.key_expr)
-            site_id, _ = _site_of(key, 0)
+        for query in self._queryable:  # ends when the queryable is undeclared
             try:
-                if query.payload is None:
-                    raise InvalidFrame("the query carries no payload (expected a frame envelope)")
-                parts, meta = unpack_envelope(query.payload.to_bytes())
-                future = self.service.submit(site_id, parts, meta)
-            except Exception as exc:
-                self._reply_error(query, exc, request_id, site_id, t0)
-                continue
-            future.add_done_callback(
-                lambda f, q=query, rid=request_id, s=site_id, t=t0: self._outbox.put(
-                    lambda: self._reply_done(q, f, rid, s, t)))
+                self._take_query(query, time.perf_counter())
+            except Exception:  # a reply to a vanished peer must not stop the thread
+                log.exception("zenoh query failed")
+
+    def _take_query(self, query: zenoh.Query, t0: float) -> None:
+        request_id = uuid.uuid4().hex
+        site_id = str(query.key_expr)  # named in the log as it came until it parses
+        try:
+            site_id = _query_site(query.key_expr)
+            if query.payload is None:
+                raise InvalidFrame("the query carries no payload (expected a frame envelope)")
+            parts, meta = unpack_envelope(query.payload.to_bytes())
+            future = self.service.submit(site_id, parts, meta)
+        except Exception as exc:
+            self._reply_error(query, exc, request_id, site_id, t0)
+            return
+        future.add_done_callback(
+            lambda f: self._outbox.put(lambda: self._reply_done(query, f, request_id, site_id, t0)))
 
     def _reply_done(self, query: zenoh.Query, future, request_id: str, site_id: str, t0: float) -> None:
         try:
@@ -165,7 +155,7 @@ class ZenohServer:
             return
         body = self.service.finish(job, site_id, request_id)
         try:
-            query.reply(query.key_expr, encode_result(body), encoding=RESULT_ENCODING)
+            query.reply(query.key_expr, encode_result(body), encoding=wire.RESULT_ENCODING)
         finally:
             query.drop()
         self._log("query", request_id, site_id, "ok", t0)
@@ -175,7 +165,7 @@ class ZenohServer:
             log.error("zenoh query %s failed", request_id, exc_info=exc)
         body = error_body(exc, request_id)
         try:
-            query.reply_err(encode_result(body), encoding=ERROR_ENCODING)
+            query.reply_err(encode_result(body), encoding=wire.ERROR_ENCODING)
         finally:
             query.drop()
         self._log("query", request_id, site_id, body["code"], t0)
@@ -197,6 +187,25 @@ class ZenohServer:
                 log.exception("zenoh reply failed")
 
     # --- streams ----------------------------------------------------------------------------------------------------
+
+    def _drain_frames(self) -> None:
+        for sample in self._subscriber:  # ends when the subscriber is undeclared
+            try:
+                key = wire.parse_key(sample.key_expr)
+            except ValueError:
+                continue  # a wildcard put matches cadreg/*/frames/* too, but names no device to answer
+            self._enqueue_frame(key.site_id, key.device_id, sample.payload.to_bytes())
+
+    def _enqueue_frame(self, site_id: str, device_id: str, payload: bytes) -> None:
+        with self._cond:
+            device = self._devices.get((site_id, device_id))
+            if device is None:
+                device = self._devices[(site_id, device_id)] = _Device(site_id, device_id)
+            if len(device.frames) >= self.settings.stream_queue_per_device:
+                device.frames.popleft()  # the device outruns the pool: the oldest frame is the least useful
+                self.service.metrics.zenoh_dropped.labels(site_id).inc()
+            device.frames.append((payload, time.perf_counter()))
+            self._cond.notify()
 
     def _next_frame(self) -> tuple[_Device, bytes, float] | None:
         """The oldest pending frame of a device with nothing in flight (round robin by dict order), or None."""
@@ -258,10 +267,9 @@ class ZenohServer:
             return
         try:
             body = self.service.finish(job, device.site_id, request_id)
-            body["frame_id"] = frame_id  # echoed, whatever the result says
-            body["device_id"] = device.device_id
-            self.session.put(f"cadreg/{device.site_id}/poses/{device.device_id}", encode_result(body),
-                             encoding=RESULT_ENCODING)
+            wire.stamp_stream_body(body, "result", frame_id, device.device_id)  # echoed, whatever the result says
+            self.session.put(wire.poses_key(device.site_id, device.device_id), encode_result(body),
+                             encoding=wire.RESULT_ENCODING)
             self._log("stream", request_id, device.site_id, "ok", t0)
         finally:
             self._release(device)
@@ -270,10 +278,9 @@ class ZenohServer:
                        t0: float) -> None:
         try:
             body = error_body(exc, request_id)
-            body["detail"]["frame_id"] = frame_id
-            body["detail"]["device_id"] = device.device_id
-            self.session.put(f"cadreg/{device.site_id}/poses/{device.device_id}", encode_result(body),
-                             encoding=ERROR_ENCODING)
+            wire.stamp_stream_body(body, "error", frame_id, device.device_id)
+            self.session.put(wire.poses_key(device.site_id, device.device_id), encode_result(body),
+                             encoding=wire.ERROR_ENCODING)
             self._log("stream", request_id, device.site_id, body["code"], t0)
         finally:
             self._release(device)

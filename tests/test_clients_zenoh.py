@@ -19,7 +19,7 @@ from clients import errors as cerr
 from clients.frames import encode_frame
 from clients.retry import RetryPolicy
 from clients.zenoh_client import ZenohClient, session_config
-from service import codec, errors as wire
+from service import codec, errors as wire, zenoh_wire
 
 
 def _free_port() -> int:
@@ -74,9 +74,9 @@ class FakeService:
             if kind == "q":
                 try:
                     body = self._answer(site, item.payload.to_bytes())
-                    item.reply(item.key_expr, codec.encode_result(body), encoding=zenoh.Encoding.APPLICATION_JSON)
+                    item.reply(item.key_expr, codec.encode_result(body), encoding=zenoh_wire.RESULT_ENCODING)
                 except wire.CadregError as exc:
-                    item.reply_err(codec.encode_result(wire.error_body(exc, "r")))
+                    item.reply_err(codec.encode_result(wire.error_body(exc, "r")), encoding=zenoh_wire.ERROR_ENCODING)
                 item.drop()
             else:
                 device = str(item.key_expr).split("/")[3]
@@ -84,11 +84,11 @@ class FakeService:
                 if meta.frame_id == "drop-me":
                     continue
                 try:
-                    body = self._answer(site, item.payload.to_bytes())
+                    body, encoding = self._answer(site, item.payload.to_bytes()), zenoh_wire.RESULT_ENCODING
                 except wire.CadregError as exc:
-                    body = wire.error_body(exc, "r")
+                    body, encoding = wire.error_body(exc, "r"), zenoh_wire.ERROR_ENCODING
                     body["detail"]["frame_id"] = meta.frame_id
-                self.session.put(f"cadreg/{site}/poses/{device}", codec.encode_result(body))
+                self.session.put(zenoh_wire.poses_key(site, device), codec.encode_result(body), encoding=encoding)
 
     def close(self) -> None:
         self.work.put(("stop", None))
@@ -175,3 +175,84 @@ def test_stream_closed_loop_keeps_a_bounded_window(endpoint: str) -> None:
         results = list(s.run((_frame(f"k{i}") for i in range(12)), max_in_flight=3))
         assert sorted(r.frame_id for r in results) == sorted(f"k{i}" for i in range(12))
         assert all(r.ok for r in results)
+
+
+@pytest.fixture()
+def raw_peer() -> Iterator[tuple[zenoh.Session, str]]:
+    """A bare peer with no cadreg service on it: the test itself speaks for the service, message by message."""
+    ep = f"tcp/127.0.0.1:{_free_port()}"
+    peer = zenoh.open(session_config(listen=[ep], mode="peer"))
+    yield peer, ep
+    peer.close()
+
+
+def _publisher_matched(pub, timeout_s: float = 5.0) -> bool:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end and not pub.matching_status.matching:
+        time.sleep(0.02)
+    return bool(pub.matching_status.matching)
+
+
+def test_stream_tells_results_from_errors_by_encoding_not_by_body(raw_peer) -> None:
+    peer, ep = raw_peer
+    # bodies that a guess by their keys gets wrong: a result holding "code" and no "status", an error body with a
+    # "status"; plus one in plain JSON, which no cadreg service sends
+    result_like_error = {"frame_id": "r1", "code": "looks-like-an-error", "message": "m", "T_map_camera": None}
+    error_like_result = {"code": "invalid_frame", "message": "bad depth", "request_id": "q", "status": "ok",
+                         "frame_id": "not-here", "detail": {"frame_id": "e1"}}
+    with ZenohClient(ep) as z, z.stream("demo", "robot-9", lost_after_s=5.0) as s:
+        for fid in ("r1", "e1", "j1"):
+            s.send(_frame(fid))
+        pub = peer.declare_publisher(zenoh_wire.poses_key("demo", "robot-9"))
+        assert _publisher_matched(pub)
+        pub.put(codec.encode_result(result_like_error), encoding=zenoh_wire.RESULT_ENCODING)
+        pub.put(codec.encode_result(error_like_result), encoding=zenoh_wire.ERROR_ENCODING)
+        pub.put(codec.encode_result({"status": "ok", "frame_id": "j1"}), encoding=zenoh.Encoding.APPLICATION_JSON)
+        got: dict[str, object] = {}
+        end = time.monotonic() + 5.0
+        while len(got) < 2 and time.monotonic() < end:
+            got.update({r.frame_id: r for r in s.poll(timeout_s=0.1)})
+        assert got["r1"].ok and got["r1"].error is None and got["r1"].result == result_like_error
+        assert isinstance(got["e1"].error, cerr.InvalidFrame) and got["e1"].result is None
+        assert got["e1"].error.request_id == "q"
+        time.sleep(0.2)
+        assert not s.poll() and s.foreign == 1 and s.pending == 1  # the plain JSON one answers nothing
+        pub.undeclare()
+
+
+def test_query_reply_kind_comes_from_its_encoding(raw_peer) -> None:
+    peer, ep = raw_peer
+    error_shaped = {"code": "unknown_site", "message": "m", "request_id": "r", "detail": {}}
+    answers = {  # site -> (reply or reply_err, body, encoding)
+        "result-with-code": ("ok", error_shaped, zenoh_wire.RESULT_ENCODING),
+        "plain-json-ok": ("ok", {"status": "ok"}, zenoh.Encoding.APPLICATION_JSON),
+        "plain-json-err": ("err", error_shaped, zenoh.Encoding.APPLICATION_JSON),
+        "error": ("err", error_shaped, zenoh_wire.ERROR_ENCODING),
+    }
+    queries: queue.SimpleQueue = queue.SimpleQueue()
+    queryable = peer.declare_queryable("cadreg/*/localize", queries.put)
+
+    def serve() -> None:
+        while (query := queries.get()) is not None:
+            how, body, encoding = answers[zenoh_wire.parse_key(query.key_expr).site_id]
+            if how == "ok":
+                query.reply(query.key_expr, codec.encode_result(body), encoding=encoding)
+            else:
+                query.reply_err(codec.encode_result(body), encoding=encoding)
+            query.drop()
+
+    server = threading.Thread(target=serve, daemon=True)
+    server.start()
+    try:
+        with ZenohClient(ep, timeout_s=5, retry=RetryPolicy(max_retries=0)) as z:
+            payload = encode_frame(_frame()).envelope()
+            assert z.localize_envelope("result-with-code", payload) == error_shaped
+            with pytest.raises(cerr.UnknownSite):
+                z.localize_envelope("error", payload)
+            for site in ("plain-json-ok", "plain-json-err"):
+                with pytest.raises(cerr.BadResponse, match="no cadreg answer"):
+                    z.localize_envelope(site, payload)
+    finally:
+        queries.put(None)
+        server.join(5)
+        queryable.undeclare()

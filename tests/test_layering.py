@@ -12,8 +12,8 @@ FORBIDDEN = {
     "service": {"clients"},
     "clients": set(),
 }
-# clients may use only the service's wire schemas, codec and error table
-CLIENTS_MAY_IMPORT_FROM_SERVICE = {"service.schemas", "service.codec", "service.errors"}
+# clients may use only the service's wire schemas, codec, error table and zenoh wire contract (keys, encodings)
+CLIENTS_MAY_IMPORT_FROM_SERVICE = {"service.schemas", "service.codec", "service.errors", "service.zenoh_wire"}
 
 
 def _imports(path: Path) -> list[str]:

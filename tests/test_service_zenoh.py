@@ -14,7 +14,7 @@ import httpx
 import pytest
 import zenoh
 
-from service import codec
+from service import codec, zenoh_wire
 from service.settings import Settings
 from service.worker import SLEEP_HOOK_PREFIX
 from service.zenoh_server import zenoh_config
@@ -92,7 +92,7 @@ def test_query_gives_the_library_pose(server, session, frames, scene0470_site_di
     for (frame, _), ref in zip(frames, expected):
         ok, body, encoding = _query(session, SITE, _envelope(frame))
         assert ok, body
-        assert encoding.startswith("application/json")
+        assert encoding == zenoh_wire.RESULT_ENCODING
         assert body["status"] == ref["status"] and body["frame_id"] == frame.frame_id
         assert body["site_id"] == SITE and body["site_version"] and body["request_id"]
         if ref["T_map_camera"] is not None:
@@ -114,7 +114,7 @@ def test_query_errors_come_back_through_reply_err(session, frames, make, site, c
     ok, body, encoding = _query(session, site, make(frames[0][0]))
     assert not ok
     assert body["code"] == code and set(body) == {"code", "message", "request_id", "detail"}
-    assert encoding.startswith("application/json")
+    assert encoding == zenoh_wire.ERROR_ENCODING
     # and the next good query is answered normally
     ok, body, _ = _query(session, SITE, _envelope(frames[1][0]))
     assert ok and body["status"] in ("ok", "ambiguous")
@@ -122,10 +122,12 @@ def test_query_errors_come_back_through_reply_err(session, frames, make, site, c
 
 def test_stream_mode_echoes_frame_ids_and_drops_the_oldest(server, session, frames) -> None:
     received: list[dict] = []
+    encodings: list[str] = []
     done = threading.Event()
 
     def on_pose(sample) -> None:  # enqueue only: no zenoh calls in a callback
         received.append(codec.decode_result(sample.payload.to_bytes()))
+        encodings.append(str(sample.encoding))
         if len(received) >= 2 and received[-1].get("frame_id") == "last":
             done.set()
 
@@ -145,6 +147,7 @@ def test_stream_mode_echoes_frame_ids_and_drops_the_oldest(server, session, fram
     assert ids[0] == f"{SLEEP_HOOK_PREFIX}1.5"
     assert ids[-1] == "last" and len(ids) <= 3, ids
     assert all(r["status"] in ("ok", "ambiguous") and r["device_id"] == "cam-1" for r in received)
+    assert encodings == [zenoh_wire.RESULT_ENCODING] * len(received)
     metrics = httpx.get(server.url + "/metrics").text
     dropped = [line for line in metrics.splitlines() if line.startswith('cadreg_zenoh_dropped_frames_total{site="scene0470"}')]
     assert dropped and float(dropped[0].split()[-1]) >= 5 - 1, dropped
@@ -154,10 +157,12 @@ def test_stream_mode_echoes_frame_ids_and_drops_the_oldest(server, session, fram
 
 def test_stream_errors_are_published_with_the_frame_id(session, frames) -> None:
     received: list[dict] = []
+    encodings: list[str] = []
     got = threading.Event()
 
     def on_pose(sample) -> None:
         received.append(json.loads(sample.payload.to_bytes()))
+        encodings.append(str(sample.encoding))
         got.set()
 
     sub = session.declare_subscriber(f"cadreg/{SITE}/poses/cam-2", on_pose)
@@ -172,4 +177,43 @@ def test_stream_errors_are_published_with_the_frame_id(session, frames) -> None:
     session.put(f"cadreg/{SITE}/frames/cam-2", b"not an envelope")
     assert got.wait(30)
     assert received[1]["code"] == "invalid_frame" and received[1]["detail"]["device_id"] == "cam-2"
+    assert encodings == [zenoh_wire.ERROR_ENCODING] * 2
     sub.undeclare()
+
+
+def test_a_wildcard_query_is_told_it_names_no_site(session, frames) -> None:
+    # cadreg/*/localize matches the service's queryable too; it must get an answer, not silence or a crash
+    ok, body, encoding = _query(session, "*", _envelope(frames[0][0]))
+    assert not ok and encoding == zenoh_wire.ERROR_ENCODING
+    assert body["code"] == "unknown_site" and body["detail"]["key"] == "cadreg/*/localize"
+    ok, body, _ = _query(session, SITE, _envelope(frames[1][0]))
+    assert ok and body["status"] in ("ok", "ambiguous")
+
+
+def test_a_second_front_end_drains_zenoh_channels_on_its_own_threads_and_stops(server) -> None:
+    """No callback of ours on zenoh's threads: queries and frames wait in zenoh's FIFO channels until our threads
+    take them; stop() undeclares, which ends those threads, and closes the session."""
+    from service.zenoh_server import ZenohServer
+
+    zport = free_port()
+    settings = server.settings.model_copy(update={"zenoh_listen": [f"tcp/127.0.0.1:{zport}"]})
+    front = ZenohServer(server.service, settings)
+    front.start()
+    peer = zenoh.open(zenoh_config(Settings(zenoh_mode="peer", zenoh_listen=[],
+                                            zenoh_connect=[f"tcp/127.0.0.1:{zport}"])))
+    try:
+        assert isinstance(front._queryable.handler, zenoh.handlers.Handler)  # noqa: SLF001
+        assert isinstance(front._subscriber.handler, zenoh.handlers.Handler)  # noqa: SLF001
+        names = sorted(t.name for t in front._threads if t.is_alive())  # noqa: SLF001
+        assert names == ["cadreg-zenoh-frames", "cadreg-zenoh-queries", "cadreg-zenoh-replies", "cadreg-zenoh-streams"]
+        time.sleep(0.5)  # let the peers meet
+        ok, body, encoding = _query(peer, SITE, b"not an envelope")
+        assert not ok and body["code"] == "invalid_frame" and encoding == zenoh_wire.ERROR_ENCODING
+        front.stop()
+        assert not any(t.is_alive() for t in front._threads)  # noqa: SLF001
+        assert front.session.is_closed()
+        assert list(peer.get(zenoh_wire.localize_key(SITE), payload=b"x", timeout=1.0)) == []
+    finally:
+        if not front.session.is_closed():
+            front.stop()
+        peer.close()
