@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     # Imported here so that `cadreg --help` stays fast.
     import uvicorn
 
-    from .http_app import create_app
+    from .http_app import create_app, uvicorn_options
     from .runtime import Service
     from .settings import settings_from
 
@@ -74,6 +74,5 @@ def run(args: argparse.Namespace) -> int:
              settings.sites_dir or f"demo, cached in {settings.demo_cache_dir}")
     # what differs from the code's defaults, so that a log tells which parameters answered
     log.info("localize config: %s", settings.localize_config.model_dump(exclude_defaults=True) or "defaults")
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level="info", access_log=False,
-                timeout_graceful_shutdown=10)
+    uvicorn.run(app, **uvicorn_options(settings), log_level="info", access_log=False, timeout_graceful_shutdown=10)
     return 0

@@ -19,6 +19,7 @@ from __future__ import annotations
 import io
 import json
 import math
+import re
 import struct
 import warnings
 from typing import Any
@@ -46,12 +47,37 @@ PNG_COMPRESS_LEVEL = 1  # DESIGN §9: level 1 costs ~20-30 ms per 640x480 image,
 
 # --- meta ---------------------------------------------------------------------------------------------------------
 
+# A FrameMeta is under 2 KiB and nests 3 deep. json.loads recurses once per level (RecursionError, a 500, past ~1000),
+# so text is measured and its nesting counted before any parser sees it.
+MAX_META_BYTES = 64 * 1024
+MAX_META_DEPTH = 32
+_JSON_STRING = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*"', re.DOTALL)
+_NOT_BRACKETS = bytes(b for b in range(256) if b not in b"[]{}")
+
+
+def check_json_bounds(text: str | bytes | bytearray, what: str, max_bytes: int, max_depth: int) -> None:
+    """Refuse (InvalidFrame naming the limit) JSON text over `max_bytes` bytes or nesting deeper than `max_depth`
+    arrays/objects, without parsing it: brackets are counted outside strings (one regex pass, then a loop over the
+    brackets alone). An unterminated string only makes the count larger; the parser refuses that text anyway."""
+    size = len(text) if isinstance(text, (bytes, bytearray)) else len(text.encode("utf-8", "surrogatepass"))
+    if size > max_bytes:
+        raise InvalidFrame(f"{what} is {size} bytes, over the {max_bytes}-byte limit",
+                           detail={"limit_bytes": max_bytes})
+    data = text if isinstance(text, (bytes, bytearray)) else text.encode("utf-8", "surrogatepass")
+    depth = 0
+    for bracket in _JSON_STRING.sub(b'""', bytes(data)).translate(None, _NOT_BRACKETS):
+        depth += 1 if bracket in b"[{" else -1
+        if depth > max_depth:
+            raise InvalidFrame(f"{what} nests deeper than the {max_depth}-level limit",
+                               detail={"limit_depth": max_depth})
+
 
 def parse_meta(raw: str | bytes | dict[str, Any] | FrameMeta) -> FrameMeta:
     """Validate the meta document (JSON text or dict) into a FrameMeta; any problem raises InvalidFrame."""
     if isinstance(raw, FrameMeta):
         return raw
     if isinstance(raw, (str, bytes, bytearray)):
+        check_json_bounds(raw, "meta", MAX_META_BYTES, MAX_META_DEPTH)
         raw = _json_object(raw, "meta", InvalidFrame)
     elif not isinstance(raw, dict):
         raise InvalidFrame("meta must be a JSON object")
@@ -88,6 +114,32 @@ def _open_image(data: bytes, part: str, formats: tuple[str, ...]) -> Image.Image
     except Exception as exc:  # Pillow raises a zoo of types (OSError, SyntaxError, ValueError...) for bad files
         raise InvalidFrame(f"{part} is not a readable {'/'.join(formats)} image: {exc}") from None
     return img
+
+
+_PART_FORMATS = {"color": ("PNG", "JPEG"), "depth": ("PNG",), "labels": ("PNG",)}
+
+
+def check_image_sizes(parts: dict[str, bytes], max_pixels: int) -> None:
+    """Refuse (InvalidFrame naming the cap) any image part whose header declares more than `max_pixels` pixels.
+    Only headers are read (Pillow opens lazily; no pixel is decoded), so the service checks this before a worker
+    spends seconds and gigabytes inflating a small file. An unreadable header is refused here too."""
+    for name, formats in _PART_FORMATS.items():
+        data = parts.get(name)
+        if not data:
+            continue
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # the cap below is ours
+                with Image.open(io.BytesIO(data), formats=list(formats)) as img:
+                    w, h = img.size
+        except Image.DecompressionBombError as exc:
+            raise InvalidFrame(f"{name} is over the {max_pixels}-pixel cap (max_frame_pixels): {exc}",
+                               detail={"part": name, "max_pixels": max_pixels}) from None
+        except Exception as exc:  # Pillow raises a zoo of types for bad files
+            raise InvalidFrame(f"{name} is not a readable {'/'.join(formats)} image: {exc}") from None
+        if w * h > max_pixels:
+            raise InvalidFrame(f"{name} is {w}x{h} = {w * h} pixels, over the {max_pixels}-pixel cap (max_frame_pixels)",
+                               detail={"part": name, "width": w, "height": h, "max_pixels": max_pixels})
 
 
 def _decode_color(data: bytes) -> np.ndarray:
@@ -257,6 +309,8 @@ def unpack_envelope(payload: bytes | bytearray | memoryview) -> tuple[dict[str, 
     body_start = _PREFIX.size + header_len
     if header_len > MAX_HEADER_BYTES or body_start > len(data):
         raise InvalidFrame("envelope header length out of range")
+    # the header is the meta plus a few part offsets: the meta's bounds, one level deeper, checked before parsing
+    check_json_bounds(data[_PREFIX.size : body_start], "envelope header", MAX_META_BYTES + 1024, MAX_META_DEPTH + 1)
     try:
         header = json.loads(data[_PREFIX.size : body_start])
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:

@@ -9,8 +9,10 @@ Routes (DESIGN §6):
     GET  /healthz, /readyz, /metrics    liveness, readiness (sites loaded, pool up), Prometheus
 Every error is `{code, message, request_id, detail}` with the status of `service.errors.ERROR_TABLE`. Request ids
 come from `X-Request-ID` (when sane) or are made here; they go back in the header, the body and the log line.
-Bodies are size-checked before anything is decoded (Content-Length, then bytes counted while reading). The event
-loop never decodes images: parts go to the worker pool as bytes.
+Bodies are size-checked before anything is decoded: a declared Content-Length over the route's cap is refused at
+once, before a byte of the body is read (and the connection closed when it is far over: nobody waits for it), then
+bytes are counted while reading. The event loop never decodes images: parts go to the worker pool as bytes. uvicorn
+runs with `uvicorn_options(settings)`: bounded headers, and a deadline for them (`GuardedH11Protocol`).
 """
 
 from __future__ import annotations
@@ -26,12 +28,14 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any, AsyncIterator
 
+import h11
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.formparsers import MultiPartException, MultiPartParser
+from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from cadreg import __version__
 from cadreg.errors import CadregError, InputError, InvalidFrame, PayloadTooLarge
@@ -88,20 +92,31 @@ def _error_response(exc: BaseException, request: Request) -> Response:
     request_id = getattr(request.state, "request_id", None)
     body = error_body(exc, request_id)
     request.state.error_code = body["code"]
-    return _JSON(body, status_code=spec_for(exc).status, headers=http_headers(exc, request_id))
+    headers = http_headers(exc, request_id)
+    if getattr(request.state, "close_connection", False):
+        headers = {**headers, "Connection": "close"}
+    return _JSON(body, status_code=spec_for(exc).status, headers=headers)
+
+
+def _refuse_declared_length(request: Request, limit: int, what: str) -> None:
+    """413 at once, before any of the body is read, when the declared Content-Length is over `limit`. uvicorn reads
+    and drops the rest of a body nobody read, so a client that sends what it declared still sees the 413; one that
+    declares far more than the limit (or lies about a slow trickle) has its connection closed after the answer."""
+    declared = request.headers.get("content-length")
+    if declared is None:
+        return
+    if not declared.isdigit():
+        raise InputError("Content-Length is not a number")
+    n = int(declared)
+    if n > limit:
+        request.state.close_connection = n > _DRAIN_FACTOR * limit
+        raise PayloadTooLarge(f"{what} of {n} bytes is over the {limit}-byte limit", detail={"limit_bytes": limit})
 
 
 async def _read_body(request: Request, limit: int) -> bytes:
     """The request body, refusing (413) anything over `limit` bytes before it is decoded."""
-    declared = request.headers.get("content-length")
+    _refuse_declared_length(request, limit, "request body")
     too_large: int | None = None
-    if declared is not None:
-        try:
-            n = int(declared)
-        except ValueError:
-            raise InvalidFrame("Content-Length is not a number") from None
-        if n > limit:
-            too_large = n
     chunks: list[bytes] = []
     total = 0
     async for chunk in request.stream():
@@ -139,12 +154,14 @@ async def _parse_multipart(request: Request, body: bytes) -> tuple[dict[str, byt
     try:
         for name, value in form.multi_items():
             if name == "meta":
+                if meta is not None:
+                    raise InvalidFrame("part 'meta' given twice", detail={"part": "meta"})
                 meta = (await value.read()).decode("utf-8") if isinstance(value, UploadFile) else value
             elif name in PART_NAMES:
                 if not isinstance(value, UploadFile):
                     raise InvalidFrame(f"part {name!r} must be a file part (binary), not a text field")
                 if name in parts:
-                    raise InvalidFrame(f"part {name!r} given twice")
+                    raise InvalidFrame(f"part {name!r} given twice", detail={"part": name})
                 parts[name] = await value.read()
             else:
                 raise InvalidFrame(f"unknown part {name!r} (expected {', '.join(PART_NAMES)}, meta)")
@@ -325,9 +342,7 @@ def create_app(settings: Settings, service: Service | None = None, zenoh_server:
 
 
 async def _stream_to_file(request: Request, path: Path, limit: int) -> None:
-    declared = request.headers.get("content-length")
-    if declared is not None and declared.isdigit() and int(declared) > limit:
-        raise PayloadTooLarge(f"archive of {declared} bytes is over the {limit}-byte limit", detail={"limit_bytes": limit})
+    _refuse_declared_length(request, limit, "archive")
     total = 0
     with open(path, "wb") as out:
         async for chunk in request.stream():
@@ -337,3 +352,46 @@ async def _stream_to_file(request: Request, path: Path, limit: int) -> None:
             await asyncio.to_thread(out.write, chunk)
     if total == 0:
         raise InputError("empty upload: send the bundle archive as the request body")
+
+
+class GuardedH11Protocol(H11Protocol):
+    """uvicorn's h11 protocol with a deadline for request headers, which uvicorn lacks: a connection that sends
+    nothing, or its headers a byte at a time, is closed `header_timeout_s` after it opened or after its last
+    answer. (uvicorn's keep-alive timer stops at the first byte received and never runs on a fresh connection.)"""
+
+    header_timeout_s = 10.0
+
+    def connection_made(self, transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self._header_deadline = self.loop.call_later(self.header_timeout_s, self._headers_overdue)
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        self._rearm_header_deadline()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._header_deadline.cancel()
+        super().connection_lost(exc)
+
+    def _rearm_header_deadline(self) -> None:
+        self._header_deadline.cancel()
+        if not self.transport.is_closing():
+            self._header_deadline = self.loop.call_later(self.header_timeout_s, self._headers_overdue)
+
+    def _headers_overdue(self) -> None:
+        # IDLE: no complete request line + headers yet on this cycle (the app is not running for it)
+        if self.conn.their_state is h11.IDLE and not self.transport.is_closing():
+            self.transport.close()
+
+
+def uvicorn_options(settings: Settings) -> dict[str, Any]:
+    """The keyword arguments of `uvicorn.run` / `uvicorn.Config` that bound what a client can hold: header size
+    (h11's incomplete-event limit), header deadline, idle keep-alive."""
+    protocol = type("GuardedH11Protocol", (GuardedH11Protocol,), {"header_timeout_s": settings.http_header_timeout_s})
+    return {
+        "host": settings.host,
+        "port": settings.port,
+        "http": protocol,
+        "timeout_keep_alive": settings.http_keep_alive_s,
+        "h11_max_incomplete_event_size": settings.http_max_header_bytes,
+    }

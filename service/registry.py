@@ -61,6 +61,7 @@ class SiteEntry:
     edges: int
     points: int
     classes: tuple[str, ...]
+    label_sets: tuple[str, ...] = ()  # the label sets the site has a label map for (site.json `label_maps`)
 
     def summary(self) -> dict[str, Any]:
         return {"site_id": self.site_id, "version": self.version}
@@ -84,13 +85,15 @@ def inspect_bundle(path: str | Path) -> SiteEntry:
     try:
         sizes = {key: int(counts[key]) for key in ("points", "nodes", "edges")}
         classes = tuple(str(c) for c in meta["classes"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise InvalidFileError(meta_path, f"malformed counts or classes: {exc!r}") from None
+        label_sets = tuple(sorted(str(k) for k in meta.get("label_maps", {})))
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise InvalidFileError(meta_path, f"malformed counts, classes or label_maps: {exc!r}") from None
     return SiteEntry(
         site_id=str(meta["site_id"]),
         version=str(meta["version"]),
         path=str(Path(path).resolve()),
         classes=classes,
+        label_sets=label_sets,
         **sizes,
     )
 

@@ -17,7 +17,7 @@ from typing import Any
 
 from cadreg.errors import InvalidFileError, InvalidFrame, Overloaded, UnknownSite
 
-from .codec import PART_NAMES, REQUIRED_PARTS, parse_meta
+from .codec import PART_NAMES, REQUIRED_PARTS, check_image_sizes, parse_meta
 from .metrics import Metrics
 from .pool import JobResult, WorkerPool
 from .registry import SiteEntry, SiteRegistry, check_site_id, inspect_bundle
@@ -95,8 +95,9 @@ class Service:
 
     def submit(self, site_id: str, parts: dict[str, bytes], meta: FrameMeta | str | bytes | dict,
                timeout_s: float | None = None) -> concurrent.futures.Future:
-        """Validate what is cheap (site, meta, parts present) and queue the job; images are decoded in the worker.
-        The meta is validated here, once: the worker receives the FrameMeta object, not text to parse again."""
+        """Validate what is cheap and queue the job; images are decoded in the worker. Checked here, for HTTP and
+        zenoh alike: the site, the meta (validated once: the worker receives the FrameMeta object, not text to parse
+        again), the parts present, the label set, and each image's size from its header (`max_frame_pixels`)."""
         entry = self.registry.get(site_id)
         meta = parse_meta(meta)
         unknown = sorted(set(parts) - set(PART_NAMES))
@@ -105,6 +106,8 @@ class Service:
         for name in REQUIRED_PARTS:
             if not parts.get(name):
                 raise InvalidFrame(f"missing part: {name}", detail={"part": name})
+        _check_label_set(entry, meta, has_labels=bool(parts.get("labels")))
+        check_image_sizes(parts, self.settings.max_frame_pixels)
         if self.pool is None:
             raise Overloaded("the service is starting", retry_after_s=self.settings.retry_after_s)
         return self.pool.submit(site_id, entry.version, parts, meta, timeout_s)
@@ -173,6 +176,15 @@ class Service:
         # The pool settles a control by the request timeout (hung workers are replaced); the margin is for its
         # dispatcher only, never the worker start timeout.
         return self.settings.request_timeout_s + 5.0
+
+
+def _check_label_set(entry: SiteEntry, meta: FrameMeta, has_labels: bool) -> None:
+    """A label set the site has no map for is refused whenever the meta names one or labels come with the frame
+    (never ignored: a client that sent the wrong name would otherwise get answers without its labels' help)."""
+    if (has_labels or "label_set" in meta.model_fields_set) and meta.label_set not in entry.label_sets:
+        known = list(entry.label_sets)
+        raise InvalidFrame(f"site {entry.site_id!r} has no label map {meta.label_set!r}; known label sets: {known}",
+                           detail={"label_set": meta.label_set, "known": known})
 
 
 def _relative(exc: InvalidFileError, root: Path) -> InvalidFileError:

@@ -9,12 +9,17 @@ Matrices are 4×4 row-major lists of floats: `T_color_depth` moves depth-camera 
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, Strict, field_validator
 
 WIRE_VERSION = 1
 MAX_TOP_K = 20
+
+# Numbers on the wire are strict: JSON `true` is not 1 (pydantic's lax mode takes a bool, or a numeric string, for a
+# number). A float field still takes a JSON integer.
+WireInt = Annotated[int, Strict()]
+WireFloat = Annotated[float, Strict()]
 
 
 class _Wire(BaseModel):
@@ -25,10 +30,10 @@ class _Wire(BaseModel):
 class Intrinsics(_Wire):
     """Pinhole intrinsics in pixels, pixel-centre convention (u - cx); the size comes from the image itself."""
 
-    fx: float = Field(gt=0, description="focal length along x, pixels")
-    fy: float = Field(gt=0, description="focal length along y, pixels")
-    cx: float = Field(description="principal point x, pixels (pixel-centre convention)")
-    cy: float = Field(description="principal point y, pixels (pixel-centre convention)")
+    fx: WireFloat = Field(gt=0, description="focal length along x, pixels")
+    fy: WireFloat = Field(gt=0, description="focal length along y, pixels")
+    cx: WireFloat = Field(description="principal point x, pixels (pixel-centre convention)")
+    cy: WireFloat = Field(description="principal point y, pixels (pixel-centre convention)")
 
 
 def _check_matrix4(value: list[list[float]] | None) -> list[list[float]] | None:
@@ -49,14 +54,16 @@ class FrameMeta(_Wire):
     color_intrinsics: Intrinsics | None = Field(
         None, description="intrinsics of the colour image; None = same camera as depth (colour must then have the depth size)"
     )
-    T_color_depth: list[list[float]] | None = Field(None, description="4x4 depth camera -> colour camera; None = identity")
-    depth_scale: float = Field(1000.0, gt=0, description="depth units per metre (1000 = millimetres)")
+    T_color_depth: list[list[WireFloat]] | None = Field(None, description="4x4 depth camera -> colour camera; None = identity")
+    depth_scale: WireFloat = Field(1000.0, gt=0, description="depth units per metre (1000 = millimetres)")
     label_set: str = Field("nyu40", min_length=1, max_length=64, description="label set of the `labels` image")
-    gravity: list[float] | None = Field(
+    gravity: list[WireFloat] | None = Field(
         None, min_length=3, max_length=3, description="gravity ('down') [gx, gy, gz] in the colour camera frame"
     )
-    pose_prior: list[list[float]] | None = Field(None, description="4x4 T_map_camera prior (colour camera -> map)")
-    top_k: int = Field(5, ge=1, le=MAX_TOP_K, description="hypotheses to return")
+    pose_prior: list[list[WireFloat]] | None = Field(None, description="4x4 T_map_camera prior (colour camera -> map)")
+    top_k: WireInt | None = Field(
+        None, ge=1, le=MAX_TOP_K, description="hypotheses to return; None = the service's configured default (match.top_k)"
+    )
 
     @field_validator("T_color_depth", "pose_prior")
     @classmethod

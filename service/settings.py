@@ -22,6 +22,8 @@ from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 from cadreg.config import LocalizeConfig
 from cadreg.errors import ConfigError
 
+from .codec import MAX_IMAGE_PIXELS
+
 # zenoh locators: <protocol>/<address>[#<config>], e.g. tcp/127.0.0.1:7447, udp/[::1]:7447
 _ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream|unixpipe)/\S+$")
 
@@ -86,6 +88,14 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="largest localize request body")
     max_bundle_bytes: int = Field(2 * 1024 * 1024 * 1024, ge=1024, description="largest site archive uploaded by PUT, "
                                   "and the most its bundle files may unpack to (counted while unpacking)")
+    max_frame_pixels: int = Field(4096 * 3072, ge=1, le=MAX_IMAGE_PIXELS, description="most pixels of one image "
+                                  "of a frame (depth, colour, labels), read from its header before any pixel is "
+                                  "decoded; default 4096x3072, beyond any RGB-D sensor. Over it -> 422")
+    http_header_timeout_s: float = Field(10.0, gt=0, le=600, description="a connection whose request headers are "
+                                         "not complete this long after it opened (or after its last answer) is closed")
+    http_keep_alive_s: float = Field(5.0, gt=0, le=600, description="an idle keep-alive connection is closed after this")
+    http_max_header_bytes: int = Field(16 * 1024, ge=1024, le=1024 * 1024,
+                                       description="largest request line + headers; more -> 400 and the connection closes")
     admin_token: SecretStr | None = Field(None, description="bearer token of the admin routes; None = admin routes refuse")
     zenoh_enabled: bool = True
     zenoh_mode: Literal["peer", "client", "router"] = "peer"

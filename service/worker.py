@@ -110,9 +110,8 @@ def _error_body(exc: BaseException) -> dict[str, Any]:
 
 
 def _top_k(meta: FrameMeta) -> int | None:
-    """The request's top_k when the client gave one; else None, so that the site's LocalizeConfig (match.top_k)
-    decides. FrameMeta fills in a default top_k, which would otherwise override the configured one."""
-    return meta.top_k if "top_k" in meta.model_fields_set else None
+    """The request's top_k; None (not sent, or sent as null) lets the site's LocalizeConfig (match.top_k) decide."""
+    return meta.top_k
 
 
 def _localize(sites: _Sites, msg: tuple, test_hooks: bool) -> tuple:

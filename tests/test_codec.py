@@ -6,6 +6,7 @@ import io
 import json
 import math
 import struct
+import zlib
 
 import numpy as np
 import pytest
@@ -245,5 +246,54 @@ def test_frame_meta_schema_forbids_extra_and_bounds() -> None:
     schema = FrameMeta.model_json_schema()
     assert schema.get("additionalProperties") is False
     m = FrameMeta.model_validate(GOOD_META)
-    assert m.top_k == 5 and m.depth_scale == 1000 and m.label_set == "nyu40"
+    assert m.top_k is None and m.depth_scale == 1000 and m.label_set == "nyu40"  # None: the configured default
     assert math.isclose(m.depth_intrinsics.fx, 35.0)
+
+
+def test_meta_nesting_and_size_are_bounded_before_parsing() -> None:
+    """Issue 14: 100,000 levels made json.loads raise RecursionError (a 500); HTTP and the zenoh envelope alike."""
+    with pytest.raises(InvalidFrame, match="65536-byte limit"):
+        codec.parse_meta("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(InvalidFrame, match="32-level limit"):
+        codec.parse_meta('{"gravity": ' + "[" * 33 + "]" * 33 + "}")
+    # brackets inside strings are not nesting
+    codec.check_json_bounds('{"a": "' + "[" * 1000 + '\\" [[["}', "meta", codec.MAX_META_BYTES, codec.MAX_META_DEPTH)
+    header = b'{"parts": {}, "meta": ' + b"[" * 50_000 + b"]" * 50_000 + b"}"
+    payload = codec._PREFIX.pack(codec.MAGIC, codec.ENVELOPE_VERSION, len(header)) + header
+    with pytest.raises(InvalidFrame, match="envelope header is .* bytes, over"):
+        codec.unpack_envelope(payload)
+    header = b'{"parts": {}, "meta": {"gravity": ' + b"[" * 40 + b"]" * 40 + b"}}"
+    payload = codec._PREFIX.pack(codec.MAGIC, codec.ENVELOPE_VERSION, len(header)) + header
+    with pytest.raises(InvalidFrame, match="33-level limit"):
+        codec.unpack_envelope(payload)
+
+
+def test_image_sizes_are_checked_from_headers_only() -> None:
+    buf = io.BytesIO()
+    Image.fromarray(np.zeros((300, 400), np.uint16)).save(buf, format="PNG")
+    codec.check_image_sizes({"depth": buf.getvalue()}, 400 * 300)
+    with pytest.raises(InvalidFrame, match=r"depth is 400x300 = 120000 pixels, over the 119999-pixel cap") as info:
+        codec.check_image_sizes({"depth": buf.getvalue()}, 400 * 300 - 1)
+    assert info.value.detail == {"part": "depth", "width": 400, "height": 300, "max_pixels": 119999}
+    with pytest.raises(InvalidFrame, match="labels is not a readable PNG"):
+        codec.check_image_sizes({"labels": b"\x89PNG not really"}, 10**6)
+    # a header declaring 20000 x 20000 (a truncated file: only the header): refused without inflating anything
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    bomb = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 20000, 20000, 16, 0, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(b"")) + chunk(b"IEND", b""))
+    with pytest.raises(InvalidFrame, match="over the 1000000-pixel cap"):
+        codec.check_image_sizes({"depth": bomb}, 10**6)
+
+
+def test_frame_meta_numbers_are_strict_and_top_k_optional() -> None:
+    base = {"depth_intrinsics": {"fx": 500, "fy": 500.0, "cx": 320, "cy": 240}}
+    assert FrameMeta.model_validate(base).top_k is None
+    assert FrameMeta.model_validate({**base, "top_k": None}).top_k is None
+    for field, value in (("top_k", True), ("top_k", "3"), ("top_k", 2.5), ("depth_scale", True),
+                         ("gravity", [0, True, 1])):
+        with pytest.raises(InvalidFrame, match=f"meta.{field}"):
+            codec.parse_meta({**base, field: value})
+    with pytest.raises(InvalidFrame, match="meta.depth_intrinsics.fx"):
+        codec.parse_meta({"depth_intrinsics": {**base["depth_intrinsics"], "fx": True}})

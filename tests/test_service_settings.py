@@ -196,3 +196,23 @@ def test_dockerfile_follows_the_house_rules() -> None:
     assert run.returncode == 0 and "--host" in run.stdout and "--sites" in run.stdout
     ignore = (REPO / ".dockerignore").read_text().split()
     assert ".git" in ignore and "tests" in ignore
+
+
+def test_frame_pixel_cap_and_http_limits(monkeypatch, tmp_path) -> None:
+    s = Settings(demo_cache_dir=tmp_path)
+    assert s.max_frame_pixels == 4096 * 3072
+    assert s.http_header_timeout_s > 0 and s.http_keep_alive_s > 0 and s.http_max_header_bytes == 16 * 1024
+    monkeypatch.setenv("CADREG_MAX_FRAME_PIXELS", str(640 * 480))
+    monkeypatch.setenv("CADREG_HTTP_HEADER_TIMEOUT_S", "2.5")
+    s = settings_from()
+    assert s.max_frame_pixels == 640 * 480 and s.http_header_timeout_s == 2.5
+    from service.codec import MAX_IMAGE_PIXELS
+    from service.http_app import uvicorn_options
+
+    options = uvicorn_options(s)
+    assert options["http"].header_timeout_s == 2.5 and options["timeout_keep_alive"] == s.http_keep_alive_s
+    assert options["h11_max_incomplete_event_size"] == s.http_max_header_bytes
+    for name, value in (("max_frame_pixels", 0), ("max_frame_pixels", MAX_IMAGE_PIXELS + 1),
+                        ("http_header_timeout_s", 0), ("http_max_header_bytes", 10)):
+        with pytest.raises(ConfigError, match=name):
+            settings_from(**{name: value})

@@ -1,0 +1,291 @@
+"""What a hostile client found (issue 14, part 2), each reproduced against a real uvicorn on loopback with a real
+worker: meta nested 100,000 deep, a small file declaring a huge image, an unknown label set, a duplicated part,
+`top_k: true`, a huge declared Content-Length, and connections that never finish their headers."""
+
+from __future__ import annotations
+
+import io
+import json
+import socket
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from PIL import Image
+
+from cadreg.errors import InvalidFrame
+from service import codec
+from service.settings import Settings
+from test_service_support import free_port, load_frames, multipart, render_frames
+
+SITE = "scene0470"
+TOKEN = "strict-token"
+UPLOAD_LIMIT = 4 * 1024 * 1024
+HEADER_TIMEOUT_S = 1.0
+MAX_HEADER_BYTES = 4096
+
+
+class _Server:
+    """`create_app(settings)` under a real uvicorn configured as `cadreg serve` configures it."""
+
+    def __init__(self, settings: Settings, ready_timeout_s: float = 180.0) -> None:
+        import uvicorn
+
+        from service.http_app import create_app, uvicorn_options
+
+        self.settings = settings
+        self.app = create_app(settings)
+        self.service = self.app.state.service
+        config = uvicorn.Config(self.app, **uvicorn_options(settings), log_level="warning", access_log=False,
+                                lifespan="on")
+        self.server = uvicorn.Server(config)
+        self.thread = threading.Thread(target=self.server.run, name="uvicorn-strict", daemon=True)
+        self.url = f"http://127.0.0.1:{settings.port}"
+        self.thread.start()
+        deadline = time.monotonic() + ready_timeout_s
+        while time.monotonic() < deadline:
+            if not self.thread.is_alive():
+                raise RuntimeError("uvicorn exited during start-up")
+            try:
+                if httpx.get(self.url + "/readyz", timeout=2.0).status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            time.sleep(0.1)
+        self.stop()
+        raise TimeoutError("the service did not become ready")
+
+    def stop(self) -> None:
+        self.server.should_exit = True
+        self.thread.join(30.0)
+
+
+@pytest.fixture(scope="module")
+def frames(scene0470_site_dir: Path, tmp_path_factory) -> list:
+    return load_frames(render_frames(scene0470_site_dir, tmp_path_factory.mktemp("sframes"), n=4))
+
+
+@pytest.fixture(scope="module")
+def server(scene0470_site_dir: Path):
+    settings = Settings(sites_dir=scene0470_site_dir.parent, port=free_port(), workers=1, queue_depth=2,
+                        request_timeout_s=20.0, max_upload_bytes=UPLOAD_LIMIT, admin_token=TOKEN,
+                        zenoh_enabled=False, http_header_timeout_s=HEADER_TIMEOUT_S,
+                        http_max_header_bytes=MAX_HEADER_BYTES)
+    live = _Server(settings)
+    yield live
+    live.stop()
+
+
+@pytest.fixture(scope="module")
+def client(server):
+    with httpx.Client(base_url=server.url, timeout=60.0) as c:
+        yield c
+
+
+def _post(client, files, data) -> httpx.Response:
+    return client.post(f"/v1/sites/{SITE}/localize", files=files, data=data)
+
+
+def _error(r: httpx.Response, status: int, code: str) -> dict:
+    assert r.status_code == status, r.text
+    body = r.json()
+    assert body["code"] == code, body
+    return body
+
+
+def _meta_doc(frame) -> dict:
+    return codec.encode_frame_parts(frame)[1].model_dump(mode="json")
+
+
+# --- 1. meta nested 100,000 deep ---------------------------------------------------------------------------------
+
+def test_meta_nested_100000_deep_is_422_naming_the_limit(client, frames) -> None:
+    files, _ = multipart(frames[0][0])
+    r = _post(client, files, {"meta": '{"frame_id": ' + "[" * 100_000 + "]" * 100_000 + "}"})
+    body = _error(r, 422, "invalid_frame")
+    assert "65536-byte limit" in body["message"], body
+    # under the size cap but deeper than the depth cap: refused by the scan, not by a recursing parser
+    deep = json.dumps(_meta_doc(frames[0][0]))[:-1] + ', "gravity": ' + "[" * 40 + "]" * 40 + "}"
+    body = _error(_post(client, files, {"meta": deep}), 422, "invalid_frame")
+    assert "32-level limit" in body["message"], body
+    assert _post(client, *multipart(frames[0][0])).status_code == 200
+
+
+# --- 2. pixel cap from the headers ---------------------------------------------------------------------------------
+
+def _png(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(array).save(buf, format="PNG", compress_level=9)
+    return buf.getvalue()
+
+
+_BIG = (3100, 4100)  # h, w: 12.71 MP, just over the default cap of 4096 x 3072 = 12.58 MP
+
+
+@pytest.mark.parametrize("part", ["color", "depth", "labels"])
+def test_an_image_over_max_frame_pixels_is_refused_from_its_header(server, client, frames, part) -> None:
+    frame = frames[0][0]
+    big = {"color": np.zeros((*_BIG, 3), np.uint8), "depth": np.zeros(_BIG, np.uint16),
+           "labels": np.zeros(_BIG, np.uint8)}[part]
+    data = _png(big)
+    assert len(data) < 200_000  # a small request...
+    files, form = multipart(frame, parts_override={part: data})
+    t0 = time.monotonic()
+    body = _error(_post(client, files, form), 422, "invalid_frame")
+    assert time.monotonic() - t0 < 5.0
+    assert "max_frame_pixels" in body["message"] and str(4096 * 3072) in body["message"], body
+    assert body["detail"]["part"] == part and body["detail"]["max_pixels"] == 4096 * 3072
+    # the parent refuses it, before a worker sees it: the zenoh front end submits through the same call
+    parts, meta = codec.encode_frame_parts(frame)
+    with pytest.raises(InvalidFrame, match="max_frame_pixels"):
+        server.service.submit(SITE, {**parts, part: data}, meta)
+
+
+# --- 3. strict meta ------------------------------------------------------------------------------------------------
+
+def test_an_unknown_label_set_is_422_naming_the_known_ones(client, frames) -> None:
+    frame = frames[0][0]
+    files, data = multipart(frame, meta_override={"label_set": "bogus"}, drop=("labels",))
+    assert "labels" not in files
+    body = _error(_post(client, files, data), 422, "invalid_frame")
+    assert "'bogus'" in body["message"] and "nyu40" in body["message"], body
+    assert "nyu40" in body["detail"]["known"]
+    if frame.labels is not None:
+        files, data = multipart(frame, meta_override={"label_set": "bogus"})
+        body = _error(_post(client, files, data), 422, "invalid_frame")
+        assert "nyu40" in body["message"]
+
+
+def test_a_duplicated_part_is_422_naming_it(client, frames) -> None:
+    files, data = multipart(frames[0][0])
+    twice = {"meta": [data["meta"], json.dumps({**json.loads(data["meta"]), "top_k": 1})]}
+    body = _error(_post(client, files, twice), 422, "invalid_frame")
+    assert "'meta' given twice" in body["message"] and body["detail"]["part"] == "meta", body
+    file_list = list(files.items()) + [("color", files["color"])]
+    body = _error(client.post(f"/v1/sites/{SITE}/localize", files=file_list, data=data), 422, "invalid_frame")
+    assert "'color' given twice" in body["message"] and body["detail"]["part"] == "color", body
+
+
+@pytest.mark.parametrize("path, value", [
+    (("top_k",), True),
+    (("top_k",), False),
+    (("depth_scale",), True),
+    (("depth_intrinsics", "fx"), True),
+    (("gravity",), [True, 0, 0]),
+    (("top_k",), "3"),
+    (("top_k",), 2.0),
+])
+def test_booleans_and_strings_are_not_numbers(client, frames, path, value) -> None:
+    meta = _meta_doc(frames[0][0])
+    target = meta
+    for key in path[:-1]:
+        target = target[key]
+    target[path[-1]] = value
+    files, _ = multipart(frames[0][0])
+    body = _error(_post(client, files, {"meta": json.dumps(meta)}), 422, "invalid_frame")
+    assert body["message"].startswith("meta." + ".".join(path)), body
+
+
+def test_top_k_not_sent_is_none_and_the_service_default_answers(client, frames) -> None:
+    meta = _meta_doc(frames[0][0])
+    meta.pop("top_k")
+    assert codec.parse_meta(json.dumps(meta)).top_k is None
+    files, _ = multipart(frames[0][0])
+    r = _post(client, files, {"meta": json.dumps(meta)})
+    assert r.status_code == 200, r.text
+    r1 = _post(client, *multipart(frames[0][0], top_k=1))
+    assert r1.status_code == 200 and len(r1.json()["hypotheses"]) <= 1
+
+
+# --- 4. declared lengths and idle connections ----------------------------------------------------------------------
+
+def _connect(server) -> socket.socket:
+    sock = socket.create_connection(("127.0.0.1", server.settings.port), timeout=5.0)
+    return sock
+
+
+def _read_until_closed(sock: socket.socket, timeout_s: float) -> tuple[bytes, bool]:
+    """What the server sent within `timeout_s`, and whether it closed the connection in that time."""
+    sock.settimeout(0.2)
+    deadline = time.monotonic() + timeout_s
+    data = b""
+    while time.monotonic() < deadline:
+        try:
+            chunk = sock.recv(65536)
+        except socket.timeout:
+            continue
+        except ConnectionResetError:
+            return data, True
+        if not chunk:
+            return data, True
+        data += chunk
+    return data, False
+
+
+def _head(method: str, path: str, length: int, extra: str = "") -> bytes:
+    return (f"{method} {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: {length}\r\n"
+            f"Content-Type: multipart/form-data; boundary=xyz\r\n{extra}\r\n").encode()
+
+
+@pytest.mark.parametrize("declared, closed", [(UPLOAD_LIMIT + 1, False), (10**12, True)])
+def test_an_oversized_content_length_is_413_before_the_body(server, declared, closed) -> None:
+    with _connect(server) as sock:
+        sock.sendall(_head("POST", f"/v1/sites/{SITE}/localize", declared))  # headers only: no body is coming
+        t0 = time.monotonic()
+        data, was_closed = _read_until_closed(sock, 3.0 if closed else 0.8)
+        assert data.startswith(b"HTTP/1.1 413"), data[:200]
+        assert b'"code":"payload_too_large"' in data and str(UPLOAD_LIMIT).encode() in data
+        if closed:  # far over the limit: nobody waits for that body
+            assert was_closed and time.monotonic() - t0 < 3.0
+            assert b"connection: close" in data.lower()
+
+
+def test_an_oversized_archive_length_is_413_before_the_body(server) -> None:
+    with _connect(server) as sock:
+        sock.sendall(_head("PUT", f"/v1/sites/{SITE}", 10**12, f"Authorization: Bearer {TOKEN}\r\n"))
+        data, was_closed = _read_until_closed(sock, 3.0)
+    assert data.startswith(b"HTTP/1.1 413") and b'"code":"payload_too_large"' in data, data[:200]
+    assert was_closed
+
+
+def test_a_connection_that_sends_nothing_is_closed_after_the_header_timeout(server) -> None:
+    with _connect(server) as sock:
+        t0 = time.monotonic()
+        data, was_closed = _read_until_closed(sock, HEADER_TIMEOUT_S + 3.0)
+    assert was_closed and data == b"", data
+    assert HEADER_TIMEOUT_S - 0.2 <= time.monotonic() - t0 < HEADER_TIMEOUT_S + 3.0
+
+
+def test_headers_sent_a_byte_at_a_time_are_cut_off(server) -> None:
+    with _connect(server) as sock:
+        sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+        t0 = time.monotonic()
+        closed = False
+        while time.monotonic() - t0 < HEADER_TIMEOUT_S + 3.0 and not closed:
+            try:
+                sock.sendall(b"X-Slow: a\r\n")
+            except (BrokenPipeError, ConnectionResetError):
+                closed = True
+                break
+            _, closed = _read_until_closed(sock, 0.2)
+    assert closed and time.monotonic() - t0 < HEADER_TIMEOUT_S + 3.0
+
+
+def test_headers_over_the_limit_are_400(server) -> None:
+    # h11 bounds what it buffers of an incomplete request head (headers still coming), so the end comes later
+    with _connect(server) as sock:
+        sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Big: " + b"a" * (2 * MAX_HEADER_BYTES) + b"\r\n")
+        data, closed = _read_until_closed(sock, 0.5)
+        if not closed:
+            sock.sendall(b"\r\n")
+            more, _ = _read_until_closed(sock, 3.0)
+            data += more
+    assert data.startswith(b"HTTP/1.1 400"), data[:200]
+
+
+def test_a_client_answered_keeps_a_usable_server(client, frames) -> None:
+    assert client.get("/healthz").status_code == 200
+    assert _post(client, *multipart(frames[0][0])).status_code == 200
