@@ -8,6 +8,10 @@
     cadreg_workers_alive                                worker processes serving
     cadreg_worker_restarts_total{reason}                crashed | timeout | start_failed | start_timeout
     cadreg_zenoh_dropped_frames_total{site}             stream frames dropped because a device outran the pool
+                                                        (loaded sites only: no state is kept for any other)
+    cadreg_zenoh_refused_frames_total{reason}           stream frames refused on arrival: unknown_site,
+                                                        payload_too_large, device_cap, stream_budget,
+                                                        shutting_down (no per-site label: a client picks sites)
     cadreg_site_info{site_id, version}                  1 per served site version
 """
 
@@ -64,6 +68,8 @@ class Metrics:
                                buckets=_LATENCY_BUCKETS_S, registry=self.registry)
         self.zenoh_dropped = Counter("cadreg_zenoh_dropped_frames", "stream frames dropped (device outran the pool)",
                                      ["site"], registry=self.registry)
+        self.zenoh_refused = Counter("cadreg_zenoh_refused_frames", "stream frames refused on arrival", ["reason"],
+                                     registry=self.registry)
         self.registry.register(_StateCollector(pool, registry))
 
     def observe_request(self, transport: str, route: str, code: str, seconds: float) -> None:

@@ -211,14 +211,25 @@ class WorkerPool:
                 for w in self._workers
             ]
 
+    def free_slots(self) -> int:
+        """How many more jobs `submit` would take now (idle workers + free queue places)."""
+        with self._lock:
+            return self._free_slots()
+
+    def _free_slots(self) -> int:  # lock held
+        idle = sum(w.state == "idle" and not w.controls for w in self._workers)
+        return self._queue_depth + idle - len(self._queue)
+
     def submit(self, site_id: str, version: str | None, parts: dict[str, bytes], meta: FrameMeta,
-               timeout_s: float | None = None) -> concurrent.futures.Future:
+               timeout_s: float | None = None, reserve: int = 0) -> concurrent.futures.Future:
         """Queue one localize job; the future yields a JobResult or raises a CadregError.
 
         `meta` is the FrameMeta validated at the entry; it travels to the worker as that object (pickled), which
         does not validate it again.
 
-        Raises Overloaded at once when `workers + queue_depth` jobs are already waiting or running.
+        Raises Overloaded at once when `workers + queue_depth` jobs are already waiting or running, or when taking
+        this job would leave fewer than `reserve` places free: a low-priority source (zenoh stream frames) passes a
+        reserve so that it never fills the places that queries and HTTP requests need.
         """
         if not isinstance(meta, FrameMeta):
             # a caller bug, not a client's: text here would be parsed in the worker, a second time
@@ -228,8 +239,7 @@ class WorkerPool:
         with self._lock:
             if self._stopping:
                 raise Overloaded("the service is shutting down", retry_after_s=self._retry_after_s)
-            idle = sum(w.state == "idle" and not w.controls for w in self._workers)
-            if len(self._queue) >= self._queue_depth + idle:
+            if self._free_slots() <= max(0, reserve):
                 raise Overloaded(
                     f"all {self._n} workers are busy and {len(self._queue)} requests are waiting",
                     retry_after_s=self._expected_wait_s(),

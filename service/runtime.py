@@ -15,7 +15,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from cadreg.errors import InvalidFileError, InvalidFrame, Overloaded, UnknownSite
+from cadreg.errors import CadregError, InvalidFileError, InvalidFrame, Overloaded, UnknownSite
 
 from .codec import PART_NAMES, REQUIRED_PARTS, check_image_sizes, parse_meta
 from .metrics import Metrics
@@ -93,11 +93,20 @@ class Service:
 
     # --- localize ---------------------------------------------------------------------------------------------------
 
+    def serves(self, site_id: str) -> bool:
+        """Whether `site_id` is a loaded site (cheap: the zenoh front end asks before it keeps any state for it)."""
+        try:
+            self.registry.get(site_id)
+        except CadregError:
+            return False
+        return True
+
     def submit(self, site_id: str, parts: dict[str, bytes], meta: FrameMeta | str | bytes | dict,
-               timeout_s: float | None = None) -> concurrent.futures.Future:
+               timeout_s: float | None = None, reserve: int = 0) -> concurrent.futures.Future:
         """Validate what is cheap and queue the job; images are decoded in the worker. Checked here, for HTTP and
         zenoh alike: the site, the meta (validated once: the worker receives the FrameMeta object, not text to parse
         again), the parts present, the label set, and each image's size from its header (`max_frame_pixels`)."""
+        # reserve: pool places this job must leave free (WorkerPool.submit); zenoh stream frames pass one
         entry = self.registry.get(site_id)
         meta = parse_meta(meta)
         unknown = sorted(set(parts) - set(PART_NAMES))
@@ -110,7 +119,7 @@ class Service:
         check_image_sizes(parts, self.settings.max_frame_pixels)
         if self.pool is None:
             raise Overloaded("the service is starting", retry_after_s=self.settings.retry_after_s)
-        return self.pool.submit(site_id, entry.version, parts, meta, timeout_s)
+        return self.pool.submit(site_id, entry.version, parts, meta, timeout_s, reserve=reserve)
 
     def finish(self, job: JobResult, site_id: str, request_id: str) -> dict[str, Any]:
         """The answer body: the result plus request id, site id and the bundle version that answered."""

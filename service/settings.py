@@ -104,6 +104,15 @@ class Settings(BaseSettings):
     zenoh_multicast_scouting: bool = Field(False, description="off unless asked: a peer would otherwise scout the LAN")
     zenoh_gossip_scouting: bool = False
     stream_queue_per_device: int = Field(2, ge=1, le=1000, description="frames kept per streaming device; older ones are dropped")
+    stream_device_ttl_s: float = Field(60.0, gt=0, le=86400, description="a streaming device idle this long is forgotten")
+    stream_max_devices: int = Field(1000, ge=1, le=1_000_000, description="streaming devices tracked at once; at the cap "
+                                    "the least recently seen idle one is forgotten, or a new device's frame is refused")
+    stream_max_pending_bytes: int = Field(256 * 1024 * 1024, ge=1024, description="stream frame bytes waiting for the "
+                                          "pool across all devices; a frame past it is refused (counted)")
+    stream_pool_share: float = Field(0.5, gt=0, le=1, description="the share of the pool's capacity (workers + "
+                                     "queue_depth) stream frames may fill; the rest stays for queries and HTTP")
+    zenoh_shutdown_timeout_s: float = Field(10.0, ge=0, le=3600, description="at shutdown, how long in-flight zenoh "
+                                            "queries may take to finish before they are answered 'shutting down'")
     log_requests: bool = True
     # NoDecode: the environment holds a file path, not the JSON of the model; `_localize_config` reads the file.
     localize_config: Annotated[LocalizeConfig, NoDecode] = Field(

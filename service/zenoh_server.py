@@ -10,9 +10,23 @@ Keys, encodings and the session config are the wire contract of service/zenoh_wi
 
 No callbacks of ours run on zenoh's threads (zenoh-python: never block or call zenoh there): the queryable and the
 subscriber deliver into zenoh's own FIFO channels, and threads of our own drain them. One thread turns queries into
-pool jobs; one moves frames into a bounded deque per device (a device that outruns the pool loses its oldest
-frames, counted in cadreg_zenoh_dropped_frames_total); one hands each device's oldest frame to the pool, one frame
-in flight per device; one replies and publishes when the jobs are done.
+pool jobs; one moves frames into a bounded deque per device; one hands each ready device's oldest frame to the pool,
+one frame in flight per device, round robin; one replies and publishes when the jobs are done.
+
+What a client cannot make grow (issue 14):
+- a payload over `max_upload_bytes` (the HTTP cap too) is refused as payload_too_large by its length, unread;
+- frames for a site that is not loaded are answered unknown_site at once and leave no state;
+- per-device state is bounded: a device idle for `stream_device_ttl_s` is forgotten, at most `stream_max_devices`
+  are tracked (at the cap the one idle longest is forgotten; when none is idle the new device's frame is refused);
+- the frames waiting across all devices hold at most `stream_max_pending_bytes`; a device that outruns the pool loses
+  its oldest frame (cadreg_zenoh_dropped_frames_total{site}, loaded sites only); refusals are counted by reason in
+  cadreg_zenoh_refused_frames_total{reason};
+- stream frames fill at most `stream_pool_share` of the pool's places (workers + queue_depth): they are submitted with
+  a reserve, so queries and HTTP requests always find the rest;
+- the next frame to submit is the head of a deque of ready devices (pending frames, nothing in flight): O(1).
+At shutdown (`stop`) new queries are answered 'shutting down' (overloaded), in-flight queries get their answers (up
+to `zenoh_shutdown_timeout_s`, then 'shutting down'), and only then are the entities undeclared and the session
+closed. Every log line is one JSON object (service/logs.py).
 """
 
 from __future__ import annotations
@@ -21,22 +35,27 @@ import logging
 import queue
 import threading
 import time
+import traceback
 import uuid
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
+from typing import Any
+
 import zenoh
 
-from cadreg.errors import CadregError, ConfigError, InvalidFrame, Overloaded, UnknownSite
+from cadreg.errors import CadregError, ConfigError, InvalidFrame, Overloaded, PayloadTooLarge, UnknownSite
 
 from . import zenoh_wire as wire
 from .codec import encode_result, unpack_envelope
 from .errors import error_body
+from .logs import log_event
 from .runtime import Service
 from .settings import Settings
 
 log = logging.getLogger("cadreg.service.zenoh")
 
-_OVERLOAD_RETRY_S = 0.02  # a stream frame refused by a full pool waits this long before the next try
+_OVERLOAD_RETRY_S = 0.02  # ready stream frames and a pool without room for them: look again this much later
+_PRUNE_EVERY_S = 1.0  # the stream thread forgets idle devices at least this often when nothing else wakes it
 # zenoh's FIFO channels block zenoh's delivery when full, which pushes back on the senders instead of losing
 # messages unseen; our drains only move items along (no decoding, no pool wait), so these depths are rarely reached.
 # Frames are dropped, and counted, in the per-device deques, not here.
@@ -55,6 +74,13 @@ def zenoh_config(settings: Settings) -> zenoh.Config:
     )
 
 
+def stream_reserve(settings: Settings) -> int:
+    """Pool places a stream frame must leave free: capacity minus the stream share (at least one place for streams)."""
+    capacity = settings.workers + settings.queue_depth
+    stream_places = max(1, int(capacity * settings.stream_pool_share))
+    return max(0, capacity - stream_places)
+
+
 def _query_site(key: zenoh.KeyExpr) -> str:
     """The site of a query's key; a wildcard query (`cadreg/**`, which our queryable matches too) names none."""
     try:
@@ -64,12 +90,42 @@ def _query_site(key: zenoh.KeyExpr) -> str:
                           detail={"key": str(key)}) from None
 
 
-@dataclass
+def _too_large(size: int, limit: int) -> PayloadTooLarge:
+    return PayloadTooLarge(f"payload of {size} bytes is over the {limit}-byte limit", detail={"limit_bytes": limit})
+
+
+def _shutting_down() -> Overloaded:
+    return Overloaded("the service is shutting down", retry_after_s=1.0)
+
+
+@dataclass(eq=False)
 class _Device:
+    """One streaming device (site, device). Idle = no frame pending and none in flight; only idle devices are
+    forgotten (TTL, cap)."""
+
     site_id: str
     device_id: str
-    frames: deque = field(default_factory=deque)
+    frames: deque = field(default_factory=deque)  # (payload bytes, t0 perf_counter)
     in_flight: bool = False
+    ready: bool = False  # in ZenohServer._ready
+    idle_since: float = 0.0  # time.monotonic()
+
+    @property
+    def key(self) -> tuple[str, str]:
+        return (self.site_id, self.device_id)
+
+    @property
+    def idle(self) -> bool:
+        return not self.frames and not self.in_flight
+
+
+@dataclass(eq=False)
+class _PendingQuery:
+    query: zenoh.Query
+    request_id: str
+    key: str
+    site_id: str | None
+    t0: float
 
 
 class ZenohServer:
@@ -80,9 +136,19 @@ class ZenohServer:
         self._queryable: zenoh.Queryable | None = None
         self._subscriber: zenoh.Subscriber | None = None
         self._outbox: queue.SimpleQueue = queue.SimpleQueue()  # callables run on the reply thread; None ends it
-        self._devices: dict[tuple[str, str], _Device] = {}
+        self._reserve = stream_reserve(settings)
+        # stream state, all under _cond
         self._cond = threading.Condition()
+        self._devices: dict[tuple[str, str], _Device] = {}
+        self._idle: OrderedDict[tuple[str, str], _Device] = OrderedDict()  # idle devices, longest idle first
+        self._ready: deque[_Device] = deque()  # pending frames and nothing in flight, round robin
+        self._pending_bytes = 0
+        self._streams_in_flight = 0
         self._stopping = False
+        # queries taken and not yet answered, under _queries_cond
+        self._queries_cond = threading.Condition()
+        self._queries: dict[str, _PendingQuery] = {}
+        self._closing = False  # no new queries: they are answered 'shutting down'
         self._threads: list[threading.Thread] = []
 
     # --- life cycle -------------------------------------------------------------------------------------------------
@@ -103,10 +169,33 @@ class ZenohServer:
             t = threading.Thread(target=target, name=f"cadreg-zenoh-{name}", daemon=True)
             t.start()
             self._threads.append(t)
-        log.info("zenoh %s listening on %s, connecting to %s", self.settings.zenoh_mode,
-                 self.settings.zenoh_listen, self.settings.zenoh_connect)
+        log_event(log, "zenoh_started", mode=self.settings.zenoh_mode, listen=self.settings.zenoh_listen,
+                  connect=self.settings.zenoh_connect)
 
     def stop(self) -> None:
+        """Graceful: refuse new queries and frames, answer the queries in flight (waiting for their jobs up to
+        `zenoh_shutdown_timeout_s`, then 'shutting down'), publish the stream answers that come in that time, then
+        undeclare, end our threads and close the session. Call before the pool stops."""
+        deadline = time.monotonic() + self.settings.zenoh_shutdown_timeout_s
+        with self._queries_cond:
+            self._closing = True
+        with self._cond:
+            self._stopping = True  # the stream thread submits nothing more; pending frames are let go
+            for device in self._devices.values():
+                device.frames.clear()
+            self._ready.clear()
+            self._pending_bytes = 0
+            self._cond.notify_all()
+        with self._queries_cond:
+            while self._queries and (left := deadline - time.monotonic()) > 0:
+                self._queries_cond.wait(left)
+            late = list(self._queries.values())
+            self._queries.clear()
+        for pending in late:  # their jobs outlived the bound: answered all the same
+            self._send_error(pending, _shutting_down())
+        with self._cond:
+            while self._streams_in_flight and (left := deadline - time.monotonic()) > 0:
+                self._cond.wait(left)
         # undeclaring closes zenoh's channels, which ends the query and frame drains' iterations
         for entity in (self._queryable, self._subscriber):
             if entity is not None:
@@ -114,14 +203,12 @@ class ZenohServer:
                     entity.undeclare()
                 except Exception:  # the session may already be closing; nothing to recover
                     log.debug("undeclare failed", exc_info=True)
-        with self._cond:
-            self._stopping = True
-            self._cond.notify_all()
         self._outbox.put(None)
         for t in self._threads:
             t.join(5.0)
         if self.session is not None:
             self.session.close()
+        log_event(log, "zenoh_stopped", unanswered_in_time=len(late))
 
     # --- queries ----------------------------------------------------------------------------------------------------
 
@@ -129,52 +216,81 @@ class ZenohServer:
         for query in self._queryable:  # ends when the queryable is undeclared
             try:
                 self._take_query(query, time.perf_counter())
-            except Exception:  # a reply to a vanished peer must not stop the thread
-                log.exception("zenoh query failed")
+            except Exception as exc:  # a reply to a vanished peer must not stop the thread
+                self._log_failure("zenoh_query_failed", exc)
 
     def _take_query(self, query: zenoh.Query, t0: float) -> None:
-        request_id = uuid.uuid4().hex
-        site_id = str(query.key_expr)  # named in the log as it came until it parses
-        try:
-            site_id = _query_site(query.key_expr)
-            if query.payload is None:
-                raise InvalidFrame("the query carries no payload (expected a frame envelope)")
-            parts, meta = unpack_envelope(query.payload.to_bytes())
-            future = self.service.submit(site_id, parts, meta)
-        except Exception as exc:
-            self._reply_error(query, exc, request_id, site_id, t0)
+        key = str(query.key_expr)
+        pending = _PendingQuery(query, uuid.uuid4().hex, key, None, t0)
+        with self._queries_cond:
+            closing = self._closing
+            if not closing:
+                self._queries[pending.request_id] = pending
+        if closing:
+            self._send_error(pending, _shutting_down())
             return
-        future.add_done_callback(
-            lambda f: self._outbox.put(lambda: self._reply_done(query, f, request_id, site_id, t0)))
+        try:
+            pending.site_id = _query_site(query.key_expr)
+            payload = query.payload
+            if payload is None:
+                raise InvalidFrame("the query carries no payload (expected a frame envelope)")
+            size, limit = len(payload), self.settings.max_upload_bytes
+            if size > limit:  # by its length: nothing of it is copied or decoded
+                raise _too_large(size, limit)
+            parts, meta = unpack_envelope(payload.to_bytes())
+            future = self.service.submit(pending.site_id, parts, meta)
+        except Exception as exc:
+            self._answer_error(pending, exc)
+            return
+        future.add_done_callback(lambda f: self._outbox.put(lambda: self._answer_done(pending, f)))
 
-    def _reply_done(self, query: zenoh.Query, future, request_id: str, site_id: str, t0: float) -> None:
+    def _claim(self, pending: _PendingQuery) -> bool:
+        """Take `pending` off the in-flight table; False when shutdown answered it already."""
+        with self._queries_cond:
+            if self._queries.pop(pending.request_id, None) is None:
+                return False
+            self._queries_cond.notify_all()
+            return True
+
+    def _answer_done(self, pending: _PendingQuery, future) -> None:
         try:
             job = future.result()
         except Exception as exc:
-            self._reply_error(query, exc, request_id, site_id, t0)
+            self._answer_error(pending, exc)
             return
-        body = self.service.finish(job, site_id, request_id)
+        if not self._claim(pending):
+            return
         try:
-            query.reply(query.key_expr, encode_result(body), encoding=wire.RESULT_ENCODING)
+            body = self.service.finish(job, pending.site_id, pending.request_id)
+            pending.query.reply(pending.query.key_expr, encode_result(body), encoding=wire.RESULT_ENCODING)
         finally:
-            query.drop()
-        self._log("query", request_id, site_id, "ok", t0)
+            pending.query.drop()
+        self._log("query", pending.request_id, "ok", pending.t0, key=pending.key, site_id=pending.site_id)
 
-    def _reply_error(self, query: zenoh.Query, exc: BaseException, request_id: str, site_id: str, t0: float) -> None:
+    def _answer_error(self, pending: _PendingQuery, exc: BaseException) -> None:
+        if self._claim(pending):
+            self._send_error(pending, exc)
+
+    def _send_error(self, pending: _PendingQuery, exc: BaseException) -> None:
         if not isinstance(exc, CadregError):
-            log.error("zenoh query %s failed", request_id, exc_info=exc)
-        body = error_body(exc, request_id)
+            self._log_failure("zenoh_query_failed", exc, request_id=pending.request_id, key=pending.key)
+        body = error_body(exc, pending.request_id)
         try:
-            query.reply_err(encode_result(body), encoding=wire.ERROR_ENCODING)
+            pending.query.reply_err(encode_result(body), encoding=wire.ERROR_ENCODING)
         finally:
-            query.drop()
-        self._log("query", request_id, site_id, body["code"], t0)
+            pending.query.drop()
+        self._log("query", pending.request_id, body["code"], pending.t0, key=pending.key, site_id=pending.site_id)
 
-    def _log(self, route: str, request_id: str, site_id: str, code: str, t0: float) -> None:
+    def _log(self, route: str, request_id: str, code: str, t0: float, **fields: Any) -> None:
         elapsed = time.perf_counter() - t0
         self.service.metrics.observe_request("zenoh", route, code, elapsed)
         if self.settings.log_requests:
-            log.info("request_id=%s zenoh %s site=%s code=%s ms=%.1f", request_id, route, site_id, code, elapsed * 1e3)
+            log_event(log, "zenoh_request", request_id=request_id, route=route, **fields, code=code,
+                      ms=round(elapsed * 1e3, 1))
+
+    def _log_failure(self, event: str, exc: BaseException, **fields: Any) -> None:
+        log_event(log, event, logging.ERROR, **fields, error=f"{type(exc).__name__}: {exc}",
+                  traceback="".join(traceback.format_exception(exc)))
 
     def _drain_outbox(self) -> None:
         while True:
@@ -183,51 +299,126 @@ class ZenohServer:
                 return
             try:
                 task()
-            except Exception:  # a reply to a vanished peer must not stop the thread
-                log.exception("zenoh reply failed")
+            except Exception as exc:  # a reply to a vanished peer must not stop the thread
+                self._log_failure("zenoh_reply_failed", exc)
 
-    # --- streams ----------------------------------------------------------------------------------------------------
+    # --- streams: arrival -------------------------------------------------------------------------------------------
 
     def _drain_frames(self) -> None:
         for sample in self._subscriber:  # ends when the subscriber is undeclared
             try:
-                key = wire.parse_key(sample.key_expr)
-            except ValueError:
-                continue  # a wildcard put matches cadreg/*/frames/* too, but names no device to answer
-            self._enqueue_frame(key.site_id, key.device_id, sample.payload.to_bytes())
+                self._take_frame(sample)
+            except Exception as exc:  # a put to a vanished peer must not stop the thread
+                self._log_failure("zenoh_frame_failed", exc)
 
-    def _enqueue_frame(self, site_id: str, device_id: str, payload: bytes) -> None:
+    def _take_frame(self, sample: zenoh.Sample) -> None:
+        try:
+            key = wire.parse_key(sample.key_expr)
+        except ValueError:
+            return  # a wildcard put matches cadreg/*/frames/* too, but names no device to answer
+        t0 = time.perf_counter()
+        size, limit = len(sample.payload), self.settings.max_upload_bytes
+        if size > limit:  # by its length: nothing of it is copied or decoded
+            self.service.metrics.zenoh_refused.labels("payload_too_large").inc()
+            self._publish_refusal(key.site_id, key.device_id, _too_large(size, limit), t0)
+            return
+        if not self.service.serves(key.site_id):  # no device state, no metric series for a site nobody serves
+            self.service.metrics.zenoh_refused.labels("unknown_site").inc()
+            exc = UnknownSite(f"unknown site {key.site_id!r}", detail={"site_id": key.site_id})
+            self._publish_refusal(key.site_id, key.device_id, exc, t0)
+            return
+        self._enqueue_frame(key.site_id, key.device_id, sample.payload.to_bytes(), t0)
+
+    def _publish_refusal(self, site_id: str, device_id: str, exc: CadregError, t0: float) -> None:
+        """Answer a frame refused on arrival on its poses key, from this thread (no state, nothing queued)."""
+        request_id = uuid.uuid4().hex
+        body = wire.stamp_stream_body(error_body(exc, request_id), "error", None, device_id)
+        self.session.put(wire.poses_key(site_id, device_id), encode_result(body), encoding=wire.ERROR_ENCODING)
+        self._log("stream", request_id, body["code"], t0, site_id=site_id, device_id=device_id, frame_id=None)
+
+    def _enqueue_frame(self, site_id: str, device_id: str, payload: bytes, t0: float) -> None:
+        metrics = self.service.metrics
+        now = time.monotonic()
         with self._cond:
+            if self._stopping:
+                metrics.zenoh_refused.labels("shutting_down").inc()
+                return
+            self._prune(now)
             device = self._devices.get((site_id, device_id))
             if device is None:
+                if len(self._devices) >= self.settings.stream_max_devices:
+                    if not self._idle:  # every tracked device has work: the new one waits its turn outside
+                        metrics.zenoh_refused.labels("device_cap").inc()
+                        return
+                    self._forget(next(iter(self._idle.values())))  # the one idle longest
                 device = self._devices[(site_id, device_id)] = _Device(site_id, device_id)
-            if len(device.frames) >= self.settings.stream_queue_per_device:
+            full = len(device.frames) >= self.settings.stream_queue_per_device
+            freed = len(device.frames[0][0]) if full else 0
+            if self._pending_bytes - freed + len(payload) > self.settings.stream_max_pending_bytes:
+                metrics.zenoh_refused.labels("stream_budget").inc()
+                if device.idle:
+                    self._set_idle(device, now)
+                return
+            if full:
                 device.frames.popleft()  # the device outruns the pool: the oldest frame is the least useful
-                self.service.metrics.zenoh_dropped.labels(site_id).inc()
-            device.frames.append((payload, time.perf_counter()))
-            self._cond.notify()
+                self._pending_bytes -= freed
+                metrics.zenoh_dropped.labels(site_id).inc()
+            device.frames.append((payload, t0))
+            self._pending_bytes += len(payload)
+            self._idle.pop(device.key, None)
+            self._mark_ready(device)
+            self._cond.notify_all()
 
-    def _next_frame(self) -> tuple[_Device, bytes, float] | None:
-        """The oldest pending frame of a device with nothing in flight (round robin by dict order), or None."""
-        for device in self._devices.values():
-            if device.frames and not device.in_flight:
-                payload, t0 = device.frames.popleft()
-                device.in_flight = True
-                return device, payload, t0
-        return None
+    # --- streams: state (all under _cond) ---------------------------------------------------------------------------
+
+    def _set_idle(self, device: _Device, now: float) -> None:
+        device.idle_since = now
+        self._idle[device.key] = device
+        self._idle.move_to_end(device.key)
+
+    def _forget(self, device: _Device) -> None:
+        self._idle.pop(device.key, None)
+        self._devices.pop(device.key, None)
+
+    def _prune(self, now: float) -> None:
+        """Forget the devices idle for longer than the TTL (the idle table is ordered by idle time: O(forgotten))."""
+        horizon = now - self.settings.stream_device_ttl_s
+        while self._idle:
+            device = next(iter(self._idle.values()))
+            if device.idle_since > horizon:
+                return
+            self._forget(device)
+
+    def _mark_ready(self, device: _Device) -> None:
+        if device.frames and not device.in_flight and not device.ready:
+            device.ready = True
+            self._ready.append(device)
+
+    def _take_next(self) -> tuple[_Device, bytes, float]:
+        """The oldest frame of the first ready device (O(1)); it is then in flight."""
+        device = self._ready.popleft()
+        device.ready = False
+        payload, t0 = device.frames.popleft()
+        self._pending_bytes -= len(payload)
+        device.in_flight = True
+        self._streams_in_flight += 1
+        return device, payload, t0
+
+    def _pool_has_room(self) -> bool:
+        pool = self.service.pool
+        return pool is not None and pool.free_slots() > self._reserve
+
+    # --- streams: to the pool and back ------------------------------------------------------------------------------
 
     def _drain_streams(self) -> None:
         while True:
             with self._cond:
-                item = None
-                while not self._stopping and (item := self._next_frame()) is None:
-                    self._cond.wait()
+                while not self._stopping and not (self._ready and self._pool_has_room()):
+                    self._prune(time.monotonic())
+                    self._cond.wait(_OVERLOAD_RETRY_S if self._ready else _PRUNE_EVERY_S)
                 if self._stopping:
                     return
-                # rotate so that one busy device cannot starve the others
-                device = item[0]
-                self._devices.pop((device.site_id, device.device_id))
-                self._devices[(device.site_id, device.device_id)] = device
+                item = self._take_next()
             self._submit_stream(*item)
 
     def _submit_stream(self, device: _Device, payload: bytes, t0: float) -> None:
@@ -236,16 +427,9 @@ class ZenohServer:
         try:
             parts, meta = unpack_envelope(payload)
             frame_id = meta.frame_id
-            future = self.service.submit(device.site_id, parts, meta)
+            future = self.service.submit(device.site_id, parts, meta, reserve=self._reserve)
         except Overloaded:
-            # the pool is full: put the frame back (newer frames may push it out) and let the pool drain
-            with self._cond:
-                device.in_flight = False
-                if len(device.frames) < self.settings.stream_queue_per_device:
-                    device.frames.appendleft((payload, t0))
-                else:
-                    self.service.metrics.zenoh_dropped.labels(device.site_id).inc()
-                self._cond.wait(_OVERLOAD_RETRY_S)
+            self._put_back(device, payload, t0)
             return
         except Exception as exc:
             # bind exc now: Python unbinds the name when the except block ends, before the outbox thread runs this
@@ -254,10 +438,34 @@ class ZenohServer:
         future.add_done_callback(
             lambda f: self._outbox.put(lambda: self._publish_done(device, f, request_id, frame_id, t0)))
 
+    def _put_back(self, device: _Device, payload: bytes, t0: float) -> None:
+        """The pool had no room after all (HTTP took it first): the frame goes back to the head of its device and
+        the device to the head of the ready deque, unless newer frames filled its queue meanwhile."""
+        with self._cond:
+            device.in_flight = False
+            self._streams_in_flight -= 1
+            if not self._stopping and len(device.frames) < self.settings.stream_queue_per_device:
+                device.frames.appendleft((payload, t0))
+                self._pending_bytes += len(payload)
+            else:
+                self.service.metrics.zenoh_dropped.labels(device.site_id).inc()
+            if device.frames and not device.ready:
+                device.ready = True
+                self._ready.appendleft(device)
+            elif device.idle:
+                self._set_idle(device, time.monotonic())
+            self._cond.notify_all()
+            self._cond.wait(_OVERLOAD_RETRY_S)
+
     def _release(self, device: _Device) -> None:
         with self._cond:
             device.in_flight = False
-            self._cond.notify()
+            self._streams_in_flight -= 1
+            if device.idle:
+                self._set_idle(device, time.monotonic())
+            else:
+                self._mark_ready(device)
+            self._cond.notify_all()
 
     def _publish_done(self, device: _Device, future, request_id: str, frame_id: str | None, t0: float) -> None:
         try:
@@ -270,17 +478,22 @@ class ZenohServer:
             wire.stamp_stream_body(body, "result", frame_id, device.device_id)  # echoed, whatever the result says
             self.session.put(wire.poses_key(device.site_id, device.device_id), encode_result(body),
                              encoding=wire.RESULT_ENCODING)
-            self._log("stream", request_id, device.site_id, "ok", t0)
+            self._log("stream", request_id, "ok", t0, site_id=device.site_id, device_id=device.device_id,
+                      frame_id=frame_id)
         finally:
             self._release(device)
 
     def _publish_error(self, device: _Device, exc: BaseException, request_id: str, frame_id: str | None,
                        t0: float) -> None:
         try:
+            if not isinstance(exc, CadregError):
+                self._log_failure("zenoh_stream_failed", exc, request_id=request_id, site_id=device.site_id,
+                                  device_id=device.device_id)
             body = error_body(exc, request_id)
             wire.stamp_stream_body(body, "error", frame_id, device.device_id)
             self.session.put(wire.poses_key(device.site_id, device.device_id), encode_result(body),
                              encoding=wire.ERROR_ENCODING)
-            self._log("stream", request_id, device.site_id, body["code"], t0)
+            self._log("stream", request_id, body["code"], t0, site_id=device.site_id, device_id=device.device_id,
+                      frame_id=frame_id)
         finally:
             self._release(device)
