@@ -150,7 +150,8 @@ def test_cadreg_serve_end_to_end(scene0470_site_dir, tmp_path) -> None:
     assert by_id["serve-test-1"]["ms"] > 0
     assert {k: by_id["serve-test-2"][k] for k in ("method", "site", "status", "code")} == {
         "method": "GET", "site": "elsewhere", "status": 404, "code": "unknown_site"}
-    assert "zenoh peer listening on ['tcp/127.0.0.1:" in log
+    started = [json.loads(line[line.index("{"):]) for line in log.splitlines() if '{"event": "zenoh_started"' in line]
+    assert started and started[0]["mode"] == "peer" and started[0]["listen"][0].startswith("tcp/127.0.0.1:")
     assert f"localize config: {{'match': {{'top_k': {config_top_k}}}}}" in log
 
 
