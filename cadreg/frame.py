@@ -102,5 +102,7 @@ class Frame:
 
 def _is_rigid(T: np.ndarray, tol: float = 1e-3) -> bool:
     R = T[:3, :3]
+    if np.abs(R).max() > 1.0 + tol:  # a rotation's entries lie in [-1, 1]; checked first, as R @ R.T may overflow
+        return False
     return bool(np.allclose(R @ R.T, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1.0) < tol
                 and np.allclose(T[3], [0, 0, 0, 1], atol=1e-9))

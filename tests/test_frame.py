@@ -40,3 +40,16 @@ def test_real_cameras_pass(K: CameraIntrinsics) -> None:
     h, v = K.fov_deg
     assert 20 <= h <= 150 and 20 <= v <= 150
     _frame(K)
+
+
+def test_huge_transform_is_refused_without_overflow() -> None:
+    import warnings
+
+    K = CameraIntrinsics(640, 480, 577.0, 577.0, 319.5, 239.5)
+    depth, color = np.full((480, 640), 1500, np.uint16), np.zeros((480, 640, 3), np.uint8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the fuzz run found an overflow warning in the rigidity check
+        with pytest.raises(InvalidFrame, match="pose prior"):
+            Frame(depth=depth, color=color, depth_intrinsics=K, color_intrinsics=K, T_map_camera_prior=np.eye(4) * 1e300)
+        with pytest.raises(InvalidFrame, match="T_color_depth"):
+            Frame(depth=depth, color=color, depth_intrinsics=K, color_intrinsics=K, T_color_depth=np.eye(4) * 1e300)
