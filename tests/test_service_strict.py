@@ -7,7 +7,6 @@ from __future__ import annotations
 import io
 import json
 import socket
-import threading
 import time
 from pathlib import Path
 
@@ -19,48 +18,13 @@ from PIL import Image
 from cadreg.errors import InvalidFrame
 from service import codec
 from service.settings import Settings
-from test_service_support import free_port, load_frames, multipart, render_frames
+from test_service_support import LiveServer, free_port, load_frames, multipart, render_frames
 
 SITE = "scene0470"
 TOKEN = "strict-token"
 UPLOAD_LIMIT = 4 * 1024 * 1024
 HEADER_TIMEOUT_S = 1.0
 MAX_HEADER_BYTES = 4096
-
-
-class _Server:
-    """`create_app(settings)` under a real uvicorn configured as `cadreg serve` configures it."""
-
-    def __init__(self, settings: Settings, ready_timeout_s: float = 180.0) -> None:
-        import uvicorn
-
-        from service.http_app import create_app, uvicorn_options
-
-        self.settings = settings
-        self.app = create_app(settings)
-        self.service = self.app.state.service
-        config = uvicorn.Config(self.app, **uvicorn_options(settings), log_level="warning", access_log=False,
-                                lifespan="on")
-        self.server = uvicorn.Server(config)
-        self.thread = threading.Thread(target=self.server.run, name="uvicorn-strict", daemon=True)
-        self.url = f"http://127.0.0.1:{settings.port}"
-        self.thread.start()
-        deadline = time.monotonic() + ready_timeout_s
-        while time.monotonic() < deadline:
-            if not self.thread.is_alive():
-                raise RuntimeError("uvicorn exited during start-up")
-            try:
-                if httpx.get(self.url + "/readyz", timeout=2.0).status_code == 200:
-                    return
-            except httpx.TransportError:
-                pass
-            time.sleep(0.1)
-        self.stop()
-        raise TimeoutError("the service did not become ready")
-
-    def stop(self) -> None:
-        self.server.should_exit = True
-        self.thread.join(30.0)
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +38,7 @@ def server(scene0470_site_dir: Path):
                         request_timeout_s=20.0, max_upload_bytes=UPLOAD_LIMIT, admin_token=TOKEN,
                         zenoh_enabled=False, http_header_timeout_s=HEADER_TIMEOUT_S,
                         http_max_header_bytes=MAX_HEADER_BYTES)
-    live = _Server(settings)
+    live = LiveServer(settings, as_served=True)
     yield live
     live.stop()
 

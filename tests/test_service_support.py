@@ -27,18 +27,19 @@ def free_port() -> int:
 
 
 class LiveServer:
-    """`create_app(settings)` under a real uvicorn in a background thread, on 127.0.0.1."""
+    """`create_app(settings)` under a real uvicorn in a background thread, on 127.0.0.1; with `as_served`,
+    uvicorn is configured as `cadreg serve` configures it (`uvicorn_options`: header and keep-alive limits)."""
 
-    def __init__(self, settings, ready_timeout_s: float = 180.0) -> None:
+    def __init__(self, settings, ready_timeout_s: float = 180.0, *, as_served: bool = False) -> None:
         import uvicorn
 
-        from service.http_app import create_app
+        from service.http_app import create_app, uvicorn_options
 
         self.settings = settings
         self.app = create_app(settings)
         self.service = self.app.state.service
-        config = uvicorn.Config(self.app, host="127.0.0.1", port=settings.port, log_level="warning",
-                                access_log=False, lifespan="on")
+        options = uvicorn_options(settings) if as_served else {"host": "127.0.0.1", "port": settings.port}
+        config = uvicorn.Config(self.app, **options, log_level="warning", access_log=False, lifespan="on")
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, name="uvicorn-test", daemon=True)
         self.url = f"http://127.0.0.1:{settings.port}"
