@@ -44,6 +44,9 @@ KeyKind = Literal["localize", "frames", "poses"]
 # '*' and '$' are zenoh wildcards / reserved, '#' and '?' are reserved by key expressions and selectors, '/' would
 # split the chunk, and a space is nothing a site or device id should hold
 _BAD_CHUNK_CHARS = frozenset("*$#?/ ")
+# a chunk that starts with '@' is verbatim in zenoh: only the same chunk matches it, never the service's '*', so a key
+# holding one reaches no cadreg queryable or subscriber (the query would time out with no reply)
+_VERBATIM = "@"
 
 
 @dataclass(frozen=True)
@@ -61,8 +64,9 @@ class WireKey:
 
 
 def _chunk(value: str, what: str) -> str:
-    if not isinstance(value, str) or not value or _BAD_CHUNK_CHARS & set(value):
-        raise ValueError(f"{what} {value!r} cannot be part of a zenoh key (no empty, '*', '$', '#', '?', '/', ' ')")
+    if not isinstance(value, str) or not value or _BAD_CHUNK_CHARS & set(value) or value.startswith(_VERBATIM):
+        raise ValueError(f"{what} {value!r} cannot be part of a zenoh key "
+                         "(no empty, '*', '$', '#', '?', '/', ' ', no leading '@')")
     return value
 
 

@@ -59,7 +59,7 @@ def test_junk_keys_are_refused(key: str) -> None:
         wire.parse_key(key)
 
 
-@pytest.mark.parametrize("bad", ["", "a/b", "*", "a*", "$x", "a#b", "a?b", "a b"])
+@pytest.mark.parametrize("bad", ["", "a/b", "*", "a*", "$x", "a#b", "a?b", "a b", "@x", "@"])
 def test_ids_that_are_not_one_chunk_are_refused(bad: str) -> None:
     with pytest.raises(ValueError, match="site id"):
         wire.localize_key(bad)
