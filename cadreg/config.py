@@ -47,6 +47,46 @@ class SiteBuildConfig(_Section):
     graph: GraphConfig = GraphConfig()
 
 
+class AutoCadConfig(_Section):
+    """Automatic CAD alignment (`site build --auto-cad`): find the furniture of the classes a CAD library covers and
+    fit its models, upright (z up), by yaw, translation and anisotropic scale. Defaults measured on scene0470."""
+
+    min_instance_points: int = Field(150, ge=10, description="smaller clustered instances get no CAD (too little "
+                                     "to fit seven parameters to)")
+    fit_points: int = Field(1500, ge=100, description="instance points and CAD surface samples used in the search "
+                            "and the ICP (random subsets: the cost is linear in them)")
+    yaw_sweep_deg: float = Field(15.0, gt=0, le=90, description="coarse yaw sweep, besides the 4 axes of the "
+                                 "instance's minimum-area footprint rectangle")
+    refine_hypotheses: int = Field(5, ge=1, description="best yaw hypotheses (≥ 20° apart) per model refined by "
+                                   "ICP: the Chamfer score of a coarse hypothesis is a poor guide to its basin")
+    icp_iterations: int = Field(12, ge=1, description="ICP rounds (correspondences, then a least-squares step)")
+    icp_max_correspondence_m: float = Field(0.10, gt=0, description="first ICP round's pairing distance; it "
+                                            "shrinks to a third of this by the last round")
+    anisotropy_sigma: float = Field(0.15, gt=0, description="how far (log of the ratio) the fit may change a "
+                                    "model's horizontal proportions before it costs like 1 cm of misfit per point: "
+                                    "chairs of a kind differ by ~10 %, and free proportions let a wrong yaw fit")
+    score_truncation_m: float = Field(0.05, gt=0, description="distances are capped at this in the Chamfer "
+                                      "score, so unseen CAD parts (a chair's hidden legs) cost a bounded amount")
+    support_search_m: float = Field(0.3, ge=0, description="the surface an object stands on is sought among "
+                                    "upward-facing unlabelled/structure points this far around its footprint")
+    inlier_m: float = Field(0.03, gt=0, description="a point this close to the other side counts as covered")
+    # Acceptance thresholds. A library model is rarely the scanned object itself: on scene0470 the 7 annotated
+    # (human) alignments measure 0.6–3.7 cm median scan -> CAD, 44–81 % scan coverage, 2.0–4.8 cm median CAD -> scan
+    # and 34–67 % CAD coverage; an automatic fit must be about as good as those to be kept.
+    max_median_scan_to_cad_m: float = Field(0.04, gt=0, description="accept: median distance of the instance's "
+                                            "points to the aligned CAD surface at most this")
+    min_scan_coverage: float = Field(0.4, ge=0, le=1, description="accept: at least this share of the instance's "
+                                     "points within inlier_m of the CAD (the CAD explains the scan)")
+    max_median_cad_to_scan_m: float = Field(0.06, gt=0, description="accept: median distance of CAD samples to the "
+                                            "instance's points at most this (looser: scans miss hidden parts)")
+    min_cad_coverage: float = Field(0.25, ge=0, le=1, description="accept: at least this share of the CAD samples "
+                                    "within inlier_m of the instance (the scan supports the CAD)")
+    annotated_margin_m: float = Field(0.15, ge=0, description="with --scan2cad too, an instance whose box centre "
+                                      "lies in an annotated CAD's box grown by this is that annotated object")
+    workers: int = Field(2, ge=1, description="processes aligning instances in parallel (the machine's cores)")
+    seed: int = Field(0, description="seed of the point subsets and CAD surface samples (builds are repeatable)")
+
+
 # --- localization -----------------------------------------------------------------------------------------------
 
 

@@ -1,11 +1,15 @@
-"""`cadreg site build | info | show`: build a site bundle, describe it, draw it."""
+"""`cadreg site build | info | show | autocad-check`: build a site bundle, describe it, draw it, and measure automatic
+CAD alignments against an annotation."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
+
+AUTO_CAD_FILE = "auto_cad.scan2cad.json"  # written into the bundle folder by `site build --auto-cad`
 
 
 def _progress_bar(desc: str):
@@ -22,29 +26,73 @@ def _progress_bar(desc: str):
     return bar, update
 
 
+def write_auto_cad(site, out: Path) -> Path | None:
+    """Write the Scan2CAD file of a site built with auto-CAD into its bundle folder and print its notes and what
+    it holds; None (nothing written) for a site built without."""
+    from ..io.scan2cad import write_scan2cad
+    from ..site.build import auto_cad_document
+
+    doc = auto_cad_document(site)
+    if doc is None:
+        return None
+    report = site.manifest["enhance"]["auto_cad"]
+    for note in report["notes"]:
+        print(f"note: {note}")
+    path = Path(out) / AUTO_CAD_FILE
+    write_scan2cad(path, doc)
+    models = doc[0]["aligned_models"]
+    n_auto = sum(1 for m in models if m.get("origin") == "auto")
+    print(f"auto-cad: {n_auto} of {len(report['instances'])} instances aligned in {report['elapsed_s']:.1f} s, "
+          f"{len(models)} CAD alignments -> {path} (edit it and rebuild with --scan2cad to adjust)")
+    return path
+
+
 def _build(args: argparse.Namespace) -> int:
+    from ..config import AutoCadConfig
     from ..site.build import build_site
 
+    t0 = time.perf_counter()
     bar, update = _progress_bar("site build")
     try:
         site = build_site(args.scan, labels_ply=args.labels, scan2cad_json=args.scan2cad, cad_root=args.cad_root,
-                          site_id=args.site_id, progress=update)
+                          site_id=args.site_id, progress=update,
+                          auto_cad=AutoCadConfig() if args.auto_cad else None)
     finally:
         bar.close()
     site.save(args.out)
+    write_auto_cad(site, args.out)
     n_cad = sum(1 for n in site.graph.nodes if n.source == "cad")
     print(f"site {site.site_id} version {site.version}: {len(site.map)} map points ({len(site.raw)} raw), "
           f"{len(site.graph.nodes)} objects ({n_cad} CAD), {site.graph.graph.number_of_edges()} edges -> {args.out}")
+    if args.auto_cad:
+        print(f"elapsed {time.perf_counter() - t0:.1f} s")
     return 0
 
 
+def cad_origins(site) -> dict[str, dict]:
+    """{CAD node id: its enhance record} with `origin` ("annotation" for bundles from before auto-CAD)."""
+    return {f["id"]: {"origin": "annotation", **f} for f in site.manifest.get("enhance", {}).get("cads", [])}
+
+
 def site_summary(site) -> dict:
-    """The `site info --json` document (DESIGN §8), plus a few extra keys."""
+    """The `site info --json` document (DESIGN §8), plus a few extra keys (CAD nodes: `origin` "annotation" |
+    "auto", and `fit` for automatic ones)."""
+    origins = cad_origins(site)
+
+    def node(n) -> dict:
+        d = {"id": n.id, "class": n.cls, "centroid": [round(float(x), 4) for x in n.centroid],
+             "source": n.source, "points": int(n.points), "cad_id": n.cad_id}
+        if n.source == "cad":
+            rec = origins.get(n.id, {"origin": "annotation"})
+            d["origin"] = rec["origin"]
+            if "auto_fit" in rec:
+                d["fit"] = rec["auto_fit"]
+        return d
+
     return {
         "site_id": site.site_id,
         "version": site.version,
-        "nodes": [{"id": n.id, "class": n.cls, "centroid": [round(float(x), 4) for x in n.centroid],
-                   "source": n.source, "points": int(n.points), "cad_id": n.cad_id} for n in site.graph.nodes],
+        "nodes": [node(n) for n in site.graph.nodes],
         "edges": site.graph.graph.number_of_edges(),
         "points": len(site.map),
         "raw_points": len(site.raw),
@@ -65,16 +113,23 @@ def _info(args: argparse.Namespace) -> int:
         return 0
     print(f"site {info['site_id']}  version {info['version']}  built {info['built_at']}")
     print(f"map points {info['points']}  raw points {info['raw_points']}  edges {info['edges']}")
-    print(f"{'id':<12} {'class':<16} {'source':<8} {'points':>7}  centroid [m]")
+    print(f"{'id':<12} {'class':<16} {'source':<8} {'origin':<10} {'points':>7}  centroid [m]")
     for n in info["nodes"]:
         c = n["centroid"]
-        print(f"{n['id']:<12} {n['class']:<16} {n['source']:<8} {n['points']:>7}  ({c[0]:.2f}, {c[1]:.2f}, {c[2]:.2f})")
+        print(f"{n['id']:<12} {n['class']:<16} {n['source']:<8} {n.get('origin', '-'):<10} {n['points']:>7}  "
+              f"({c[0]:.2f}, {c[1]:.2f}, {c[2]:.2f})")
     if info["cad_fit"]:
-        print(f"{'CAD fit':<12} {'model':<44} {'replaced':>8}  CAD samples to scan: median / p90 [cm]")
+        print(f"{'CAD fit':<12} {'model':<44} {'origin':<10} {'replaced':>8}  CAD samples to scan: median / p90 [cm]"
+              "; auto: instance to CAD median [cm], coverage scan / CAD")
         for f in info["cad_fit"]:
             fit = ("-" if f["median_distance_to_scan_m"] is None else
                    f"{100 * f['median_distance_to_scan_m']:.1f} / {100 * f['p90_distance_to_scan_m']:.1f}")
-            print(f"{f['id']:<12} {f['cad_id']:<44} {f['raw_points_replaced']:>8}  {fit}")
+            auto = f.get("auto_fit")
+            if auto:
+                fit += (f"; {100 * auto['median_scan_to_cad_m']:.1f}, "
+                        f"{auto['scan_coverage']:.2f} / {auto['cad_coverage']:.2f}")
+            print(f"{f['id']:<12} {f['cad_id']:<44} {f.get('origin', 'annotation'):<10} "
+                  f"{f['raw_points_replaced']:>8}  {fit}")
     return 0
 
 
@@ -86,6 +141,31 @@ def _show(args: argparse.Namespace) -> int:
     Path(args.png).parent.mkdir(parents=True, exist_ok=True)
     Path(args.png).write_bytes(render_site_png(site))
     print(f"wrote {args.png}")
+    return 0
+
+
+def _autocad_check(args: argparse.Namespace) -> int:
+    from ..io.bundle_files import read_json
+    from ..io.scan2cad import read_scan2cad, select_scan
+    from ..site.autocad_check import compare_alignments, format_checks
+
+    annotated = select_scan(read_scan2cad(args.scan2cad), args.scan.name, args.scan2cad)
+    if args.auto is not None:
+        auto_path = args.auto
+    else:
+        from ..config import AutoCadConfig
+        from ..site.build import build_site
+
+        t0 = time.perf_counter()
+        site = build_site(args.scan, labels_ply=args.labels, cad_root=args.cad_root, site_id=args.site_id,
+                          auto_cad=AutoCadConfig())
+        print(f"site build --auto-cad: elapsed {time.perf_counter() - t0:.1f} s")
+        out = args.out or Path(f"/tmp/cadreg/autocad-check/{site.site_id}")
+        site.save(out)
+        auto_path = write_auto_cad(site, out)
+    auto = read_scan2cad(auto_path)[0]
+    fits = [m.get("fit") for m in read_json(auto_path)[0]["aligned_models"]]
+    print(format_checks(compare_alignments(annotated, auto, fits)))
     return 0
 
 
@@ -101,6 +181,9 @@ def register(subparsers) -> None:
     b.add_argument("--cad-root", type=Path, help="ShapeNet-style CAD folder: <synset>/<id>/models/model_normalized.obj")
     b.add_argument("--out", required=True, type=Path, help="bundle directory to write")
     b.add_argument("--site-id", help="site id (default: the scan file's name up to its first dot)")
+    b.add_argument("--auto-cad", action="store_true",
+                   help="align the --cad-root library's models to the labelled instances no annotation covers "
+                        f"(needs labels); writes all CAD alignments to SITE/{AUTO_CAD_FILE} (Scan2CAD format)")
     b.set_defaults(func=_build)
 
     i = site_sub.add_parser("info", help="describe a site bundle (verifies its hashes)")
@@ -117,9 +200,24 @@ def register(subparsers) -> None:
     s.add_argument("--png", required=True, type=Path)
     s.set_defaults(func=_show)
 
+    c = site_sub.add_parser(
+        "autocad-check", help="measure automatic CAD alignments against a Scan2CAD annotation of the same scan",
+        description="Runs `site build --auto-cad` (or reads --auto) and prints, per annotated object, the errors of "
+                    "the automatic CAD's box: centre (horizontal, height), yaw modulo symmetry, extents, and its fit.")
+    c.add_argument("--scan", required=True, type=Path)
+    c.add_argument("--labels", type=Path)
+    c.add_argument("--cad-root", required=True, type=Path)
+    c.add_argument("--scan2cad", required=True, type=Path, help="the annotation to compare with")
+    c.add_argument("--auto", type=Path, help=f"an automatic alignment file ({AUTO_CAD_FILE}) instead of building")
+    c.add_argument("--out", type=Path, help="where the check's site goes (default /tmp/cadreg/autocad-check/ID)")
+    c.add_argument("--site-id")
+    c.set_defaults(func=_autocad_check)
+
     def _need_cad_root(args: argparse.Namespace) -> int:
         if args.scan2cad is not None and args.cad_root is None:
             b.error("--scan2cad needs --cad-root")
+        if args.auto_cad and args.cad_root is None:
+            b.error("--auto-cad needs --cad-root")
         return _build(args)
 
     b.set_defaults(func=_need_cad_root)

@@ -4,6 +4,9 @@ The file is a list of scan records: `id_scan`, the scan's own `trs`, and `aligne
 (ShapeNet synset), `id_cad`, `trs` {translation (3,), rotation quaternion (w, x, y, z), scale (3,)}, `bbox` (half
 extents of the CAD in its own frame), `center`, `sym`. A CAD vertex lands in the scan (mesh) frame by
 `p_scan = inv(M(trs_scan)) @ M(trs_cad) @ p_cad`, with `M(trs) = T(translation) · R(quaternion) · S(scale)`.
+
+`write_scan2cad` writes such a file (automatic alignments, `cadreg site build --auto-cad`); extra keys per model
+(cadreg's `origin` and `fit`) are kept for a person to read and ignored by `read_scan2cad`.
 """
 
 from __future__ import annotations
@@ -16,7 +19,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import InvalidFileError
-from ..geometry import quat_wxyz_to_R
+from ..geometry import R_to_quat_wxyz, quat_wxyz_to_R
+from .bundle_files import write_bundle_dir
 
 
 @dataclass(frozen=True)
@@ -33,6 +37,24 @@ class TRS:
         M[:3, :3] = quat_wxyz_to_R(self.rotation_wxyz) @ np.diag(self.scale)
         M[:3, 3] = self.translation
         return M
+
+    @classmethod
+    def from_affine(cls, A: np.ndarray) -> "TRS":
+        """The TRS of a 4×4 affine A = T · R · S (R a rotation, S a positive diagonal scale), as Scan2CAD stores
+        it. Raises InvalidArgument when A's linear part is not a rotation times a positive scale."""
+        from ..errors import InvalidArgument
+
+        A = np.asarray(A, dtype=np.float64)
+        L = A[:3, :3]
+        scale = np.linalg.norm(L, axis=0)
+        R = L / np.where(scale > 0, scale, 1.0)
+        if np.any(scale <= 0) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0:
+            raise InvalidArgument("affine is not translation · rotation · positive scale")
+        return cls(A[:3, 3].copy(), R_to_quat_wxyz(R), scale)
+
+    def to_json(self) -> dict[str, list[float]]:
+        return {"translation": [float(x) for x in self.translation],
+                "rotation": [float(x) for x in self.rotation_wxyz], "scale": [float(x) for x in self.scale]}
 
 
 @dataclass(frozen=True)
@@ -122,3 +144,9 @@ def select_scan(scans: list[Scan2CADScan], scan_name: str, path: str | Path = "s
     if len(hits) != 1:
         raise InvalidFileError(path, f"{len(hits)} records match the scan {scan_name!r} (of {len(scans)})")
     return hits[0]
+
+
+def write_scan2cad(path: str | Path, records: list[dict[str, Any]]) -> None:
+    """Write Scan2CAD records (JSON-able dicts: `id_scan`, `trs`, `aligned_models`, ...) as a Scan2CAD file."""
+    path = Path(path)
+    write_bundle_dir(path.parent, {path.name: (json.dumps(records, indent=1) + "\n").encode()})

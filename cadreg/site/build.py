@@ -1,15 +1,20 @@
 """Build a site from a scan (+ labels, + Scan2CAD alignments and a CAD library), or from labelled points.
 
-    build_site(scan_ply, labels_ply=..., scan2cad_json=..., cad_root=..., site_id=...) -> Site
-    site_from_labelled_points(points, colors, normals, labels, site_id=..., inputs=...) -> Site  (no CAD)
+    build_site(scan_ply, labels_ply=..., scan2cad_json=..., cad_root=..., auto_cad=..., site_id=...) -> Site
+    site_from_labelled_points(points, colors, normals, labels, site_id=..., inputs=..., cad_root=..., auto_cad=...)
+        -> Site  (CADs only from automatic alignment)
+    auto_cad_document(site) -> Scan2CAD records of a site's CADs (None unless built with auto_cad)
 
-Steps: read -> voxel down-sample the raw scan -> enhance with CADs (paper §2.2) -> cluster the labelled points no
-CAD covers into object nodes -> semantic graph (paper §2.3.2) -> Site (call `site.save(dir)` to write the bundle).
+Steps: read -> voxel down-sample the raw scan -> [automatic CAD alignment of the labelled instances no annotation
+covers (cadreg/site/autocad.py)] -> enhance with CADs (paper §2.2) -> cluster the labelled points no CAD covers
+into object nodes -> semantic graph (paper §2.3.2) -> Site (call `site.save(dir)` to write the bundle).
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+import logging
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -17,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from .. import __version__
-from ..config import SiteBuildConfig
+from ..config import AutoCadConfig, GraphConfig, SiteBuildConfig
 from ..errors import InvalidArgument
 from ..io.bundle_files import sha256_file
 from ..io.cad import cad_model_path, load_cad_mesh
@@ -28,9 +33,10 @@ from ..pointset import SOURCE_RAW, PointSet
 from .bundle import Site
 from .enhance import CadPlacement, EnhancedMap, enhance_map
 from .graph import ObjectNode, build_graph
-from .objects import aabb_center, classwise_clusters, merge_stacked, points_in_box, upright_box
+from .objects import Cluster, aabb_center, affine_box, classwise_clusters, merge_stacked, points_in_box, upright_box
 
 Progress = Callable[[int, int], None]
+log = logging.getLogger("cadreg.site")
 
 
 def _stage(progress: Progress | None, base: int, span: int, total: int) -> Progress | None:
@@ -77,6 +83,16 @@ def _remnant_of(pts: np.ndarray, cls: str, cad_nodes: list[ObjectNode], margin_m
     return None
 
 
+def object_clusters(points: np.ndarray, class_index: np.ndarray, graph: GraphConfig,
+                    progress: Progress | None = None) -> list[Cluster]:
+    """Object instances of labelled points: class-wise Euclidean clustering, then stacked parts of one piece of
+    furniture merged (the graph's cluster nodes and the instances auto-CAD fits are made alike)."""
+    clusters = classwise_clusters(points, class_index, graph.cluster_tolerance_m, graph.min_cluster_points, progress)
+    if graph.stacked_merge_overlap > 0:
+        clusters = merge_stacked(points, clusters, graph.stacked_merge_overlap)
+    return clusters
+
+
 def _cluster_nodes(
     enhanced: PointSet, classes: list[str], cad_nodes: list[ObjectNode], config: SiteBuildConfig,
     progress: Progress | None,
@@ -86,10 +102,7 @@ def _cluster_nodes(
     Clusters that are leftovers of a CAD object (same class, next to its box) join that CAD's instance instead.
     """
     free = np.flatnonzero((enhanced.source == SOURCE_RAW) & (enhanced.instance < 0) & (enhanced.class_index >= 0))
-    clusters = classwise_clusters(enhanced.points[free], enhanced.class_index[free],
-                                  config.graph.cluster_tolerance_m, config.graph.min_cluster_points, progress)
-    if config.graph.stacked_merge_overlap > 0:
-        clusters = merge_stacked(enhanced.points[free], clusters, config.graph.stacked_merge_overlap)
+    clusters = object_clusters(enhanced.points[free], enhanced.class_index[free], config.graph, progress)
     nodes: list[ObjectNode] = []
     for cl in clusters:
         idx = free[cl.indices]
@@ -111,6 +124,7 @@ def _cluster_nodes(
 def _assemble(
     raw: PointSet, structure: np.ndarray, placements: list[CadPlacement], *, site_id: str, inputs: dict[str, Any],
     label_set: str, config: SiteBuildConfig, progress: Progress | None, total: int, base: int,
+    auto_report: dict[str, Any] | None = None,
 ) -> Site:
     classes = list(GRAPH_CLASSES)
     enhanced: EnhancedMap = enhance_map(raw, structure, placements, classes, config.enhance,
@@ -130,10 +144,126 @@ def _assemble(
         "enhance": {"cad_models": len(placements), "raw_points_replaced": enhanced.removed_raw,
                     "cads": enhanced.cad_fit},
     }
+    if auto_report is not None:
+        auto_report["scan2cad"] = _scan2cad_records(site_id, placements, enhanced.cad_fit)
+        meta["enhance"]["auto_cad"] = auto_report
     site = Site(site_id=site_id, version="", manifest=meta, map=m, raw=raw, graph=graph, classes=classes,
                 label_maps=default_label_maps())
     site.refresh_version()
     return site
+
+
+def _annotated(center: np.ndarray, cls: str, annotated: list[CadPlacement], margin_m: float) -> bool:
+    """True when the box centre of an instance lies in the (grown) box of an annotated CAD of its class."""
+    for pl in annotated:
+        if pl.cls != cls:
+            continue
+        verts = np.asarray(pl.mesh.vertices)
+        box_c, box_e, box_R = affine_box(pl.A_scan_cad, verts.min(axis=0), verts.max(axis=0))
+        if points_in_box(center[None], box_c, box_e, box_R, margin_m)[0]:
+            return True
+    return False
+
+
+def auto_cad_placements(
+    raw: PointSet, structure: np.ndarray, annotated: list[CadPlacement], library, *, config: SiteBuildConfig,
+    auto: AutoCadConfig, classes: list[str],
+) -> tuple[list[CadPlacement], dict[str, Any]]:
+    """CAD placements found by aligning `library` (an autocad.CadLibrary) to the labelled instances of `raw`.
+
+    Instances are the build's object clusters of the raw labelled points (`object_clusters`); those of a class the
+    library has no model of, smaller than `auto.min_instance_points`, or covered by an `annotated` CAD are left
+    alone (they become cluster nodes, or stay the annotated object). Returns the accepted placements (origin
+    "auto", in instance order) and a JSON-able report: per instance the fit of every model tried, and notes.
+    """
+    from .autocad import AlignJob, align_instances, model_data, support_height
+
+    t0 = time.perf_counter()
+    labelled = np.flatnonzero(raw.class_index >= 0)
+    clusters = object_clusters(raw.points[labelled], raw.class_index[labelled], config.graph)
+    covered = library.classes()
+    notes = list(library.notes)
+    uncovered: dict[str, int] = {}
+    jobs: list[AlignJob] = []
+    n_annotated = n_small = 0
+    for cl in clusters:
+        cls = classes[cl.class_index]
+        pts = raw.points[labelled[cl.indices]].astype(np.float64)
+        if cls not in covered:
+            uncovered[cls] = uncovered.get(cls, 0) + 1
+            continue
+        if len(pts) < auto.min_instance_points:
+            n_small += 1
+            continue
+        if _annotated(upright_box(pts)[0], cls, annotated, auto.annotated_margin_m):
+            n_annotated += 1
+            continue
+        jobs.append(AlignJob(len(jobs), cls, pts, support_height(raw, structure, pts, auto.support_search_m),
+                             [model_data(m) for m in library.of_class(cls)], auto))
+    if uncovered:
+        listed = ", ".join(f"{c} ({n})" for c, n in sorted(uncovered.items()))
+        notes.append(f"the CAD library has no model of these classes (instances): {listed}; they stay cluster nodes")
+    results = align_instances(jobs, auto.workers)
+    placements: list[CadPlacement] = []
+    for r in results:
+        if r.accepted is None:
+            best = r.fits[0]
+            c = r.center
+            notes.append(f"no CAD model fits the {r.cls} at ({c[0]:.2f}, {c[1]:.2f}, {c[2]:.2f}) (best {best.cad_id}: "
+                         f"{best.fit.to_dict()}): it stays a cluster node")
+            continue
+        m = library.model(r.accepted.cad_id)
+        placements.append(CadPlacement(m.mesh, r.accepted.A_map_cad, m.cls, m.cad_id, origin="auto",
+                                       fit=r.accepted.fit.to_dict(), sym=r.accepted.sym))
+    for note in notes[len(library.notes):]:
+        log.info("auto-cad: %s", note)
+    report = {
+        "library": str(library.root), "library_models": len(library.models), "config": auto.model_dump(mode="json"),
+        "instances": [r.to_dict() for r in results], "aligned": len(placements),
+        "annotated_instances": n_annotated, "small_instances": n_small, "notes": notes,
+        "elapsed_s": round(time.perf_counter() - t0, 2),
+    }
+    return placements, report
+
+
+def _scan2cad_records(site_id: str, placements: list[CadPlacement], cad_fit: list[dict]) -> list[dict[str, Any]]:
+    """Every CAD of the site (annotated ones too, re-expressed in the map frame) as a Scan2CAD file's records."""
+    from .autocad import aligned_model_record, scan2cad_record
+
+    models = []
+    for pl, f in zip(placements, cad_fit):
+        verts = np.asarray(pl.mesh.vertices)
+        extra = {"origin": pl.origin, **({} if pl.fit is None else {"fit": pl.fit})}
+        models.append(aligned_model_record(pl.cad_id, pl.A_scan_cad, verts.min(axis=0), verts.max(axis=0), pl.sym,
+                                           **extra))
+    return [scan2cad_record(site_id, models)]
+
+
+def auto_cad_document(site: Site) -> list[dict[str, Any]] | None:
+    """The Scan2CAD records (JSON-able) of a site built with auto-CAD, for a runner to write beside the bundle
+    (`cadreg.io.scan2cad.write_scan2cad`); None for sites built without."""
+    auto = site.manifest.get("enhance", {}).get("auto_cad")
+    return None if auto is None else auto.get("scan2cad")
+
+
+def _auto_cad(
+    raw: PointSet, structure: np.ndarray, annotated: list[CadPlacement], cad_root, auto: AutoCadConfig,
+    config: SiteBuildConfig, has_labels: bool, inputs: dict[str, Any],
+) -> tuple[list[CadPlacement], dict[str, Any]]:
+    from .autocad import load_library
+
+    if cad_root is None:
+        raise InvalidArgument("auto-CAD needs cad_root (the CAD library)")
+    if not has_labels:
+        raise InvalidArgument("auto-CAD needs per-point labels: it fits CAD models to labelled object instances")
+    library = load_library(cad_root, auto.seed)
+    inputs["cad_root"] = str(cad_root)
+    models = dict(inputs.get("cad_models", {}))
+    models.update({m.cad_id: sha256_file(m.path) for m in library.models})
+    inputs["cad_models"] = models
+    found, report = auto_cad_placements(raw, structure, annotated, library, config=config, auto=auto,
+                                        classes=list(GRAPH_CLASSES))
+    return annotated + found, report
 
 
 def _raw_pointset(points, colors, normals, labels, label_set: str, voxel_m: float) -> tuple[PointSet, np.ndarray]:
@@ -161,8 +291,11 @@ def site_from_labelled_points(
     inputs: dict[str, Any],
     config: SiteBuildConfig = SiteBuildConfig(),
     progress: Progress | None = None,
+    cad_root: str | Path | None = None,
+    auto_cad: AutoCadConfig | None = None,
 ) -> Site:
-    """A site from labelled points alone (e.g. a TSDF-fused map): no CAD, every node from clustering.
+    """A site from labelled points alone (e.g. a TSDF-fused map): every node from clustering, or, with `auto_cad`
+    and a CAD library at `cad_root`, CAD nodes where the library's models fit the labelled instances.
 
     points (N, 3) float, map frame, metres; colors (N, 3) uint8 RGB; normals (N, 3) float or None (estimated);
     labels (N,) int ids in `label_set` or None (no object nodes); inputs: JSON-able description of the sources.
@@ -178,8 +311,13 @@ def site_from_labelled_points(
     raw, structure = _raw_pointset(points, colors, normals, labels, label_set, config.enhance.raw_voxel_m)
     if progress is not None:
         progress(3, total)
-    return _assemble(raw, structure, [], site_id=site_id, inputs=inputs, label_set=label_set, config=config,
-                     progress=progress, total=total, base=3)
+    placements: list[CadPlacement] = []
+    report = None
+    if auto_cad is not None:
+        inputs = dict(inputs)
+        placements, report = _auto_cad(raw, structure, [], cad_root, auto_cad, config, labels is not None, inputs)
+    return _assemble(raw, structure, placements, site_id=site_id, inputs=inputs, label_set=label_set, config=config,
+                     progress=progress, total=total, base=3, auto_report=report)
 
 
 def build_site(
@@ -191,14 +329,19 @@ def build_site(
     site_id: str | None = None,
     config: SiteBuildConfig = SiteBuildConfig(),
     progress: Progress | None = None,
+    auto_cad: AutoCadConfig | None = None,
 ) -> Site:
     """Build a site from a scan PLY (colours required; NYU40 labels from `labels_ply` or the scan's own `label`),
     optionally enhanced with the Scan2CAD record of this scan (the one whose id_scan the file name starts with, or
-    the only one) and CAD models from `cad_root`. Raises InvalidFileError naming any bad or missing input file.
+    the only one) and CAD models from `cad_root`. With `auto_cad`, the library's models are also aligned to the
+    labelled instances no annotation covers (cadreg/site/autocad.py); `auto_cad_document(site)` gives all CADs as
+    a Scan2CAD file. Raises InvalidFileError naming any bad or missing input file (a missing or empty library too).
     """
     scan_ply = Path(scan_ply)
     if scan2cad_json is not None and cad_root is None:
         raise InvalidArgument("scan2cad_json needs cad_root (the CAD library)")
+    if auto_cad is not None and cad_root is None:
+        raise InvalidArgument("auto-CAD needs cad_root (the CAD library)")
     total = 12
     scan = read_scan(scan_ply, labels_ply)
     inputs: dict[str, Any] = {"scan": {"path": str(scan_ply), "sha256": sha256_file(scan_ply)}}
@@ -218,7 +361,7 @@ def build_site(
             if key not in cad_files:
                 cad_files[key] = sha256_file(path)
             placements.append(CadPlacement(load_cad_mesh(path), record.A_scan_cad(model),
-                                           synset_class(model.catid_cad), key))
+                                           synset_class(model.catid_cad), key, sym=model.sym))
         inputs["cad_root"] = str(cad_root)
         inputs["cad_models"] = cad_files
     if progress is not None:
@@ -226,9 +369,12 @@ def build_site(
     has_labels = scan.labels is not None
     raw, structure = _raw_pointset(scan.points, scan.colors, scan.normals, scan.labels, "nyu40",
                                    config.enhance.raw_voxel_m)
+    report = None
+    if auto_cad is not None:
+        placements, report = _auto_cad(raw, structure, placements, cad_root, auto_cad, config, has_labels, inputs)
     if progress is not None:
         progress(5, total)
     site = _assemble(raw, structure, placements, site_id=site_id or scan_ply.name.split(".")[0], inputs=inputs,
                      label_set="nyu40" if has_labels else "none", config=config, progress=progress, total=total,
-                     base=5)
+                     base=5, auto_report=report)
     return site

@@ -25,12 +25,17 @@ class CadPlacement:
     mesh : trimesh.Trimesh in the CAD model's own frame.
     A_scan_cad : (4, 4) float64 affine (rotation · anisotropic scale + translation) CAD frame -> scan/map frame.
     cls : graph class; cad_id : "<synset>/<model id>".
+    origin : "annotation" (a Scan2CAD file) or "auto" (cadreg/site/autocad.py); fit : the auto-alignment's fit
+    (JSON-able) or None; sym : Scan2CAD symmetry name when known.
     """
 
     mesh: object
     A_scan_cad: np.ndarray
     cls: str
     cad_id: str
+    origin: str = "annotation"
+    fit: dict | None = None
+    sym: str | None = None
 
 
 @dataclass
@@ -40,7 +45,8 @@ class EnhancedMap:
     map: PointSet
     cad_nodes: list[ObjectNode]
     removed_raw: int
-    cad_fit: list[dict]  # per CAD: node id, raw points replaced, median/p90 distance of its samples to the raw scan
+    cad_fit: list[dict]  # per CAD: node id, raw points replaced, median/p90 distance of its samples to the raw scan,
+    #                      origin ("annotation" | "auto") and, for auto-alignments, their fit ("auto_fit")
 
 
 def sample_cad_surface(mesh_scan, spacing_m: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -127,7 +133,8 @@ def enhance_map(
         d = raw_tree.query(pts)[0] if raw_tree is not None else None
         fits.append({"id": f"cad-{i}", "cad_id": pl.cad_id, "raw_points_replaced": int(inside.sum()),
                      "median_distance_to_scan_m": None if d is None else round(float(np.median(d)), 4),
-                     "p90_distance_to_scan_m": None if d is None else round(float(np.percentile(d, 90)), 4)})
+                     "p90_distance_to_scan_m": None if d is None else round(float(np.percentile(d, 90)), 4),
+                     "origin": pl.origin, **({} if pl.fit is None else {"auto_fit": pl.fit})})
         nodes.append(ObjectNode(
             id=f"cad-{i}", cls=pl.cls, centroid=aabb_center(mesh.vertices), box_center=center, box_extent=extent,
             box_R=R, source="cad", cad_id=pl.cad_id, points=n,
