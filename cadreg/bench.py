@@ -4,6 +4,7 @@ Methods (`METHODS`):
 - `cadreg` — the localizer as configured; `cadreg:<refine method>` with another refinement (REFINE_METHODS).
 - `cadreg-nolabels` — the localizer with the frame's labels removed (exercises the fallback on labelled data).
 - `fpfh-ransac` — Open3D FPFH + RANSAC + ICP on the whole map, no initial guess (the baseline).
+- `kiss-matcher` — KISS-Matcher's global registration + the same ICP (the peer; the optional extra `cadreg[kiss]`).
 - `refine-from-gt-perturbed[:<refine method>]` — the refinement alone, started from the ground truth moved by
   20 cm along a random direction and rotated 10° about a random axis (seeded per frame), then brought in by
   the localizer's own path from a hypothesis (coarse GICP at RefineConfig.coarse_voxel_m, then the fine method).
@@ -12,6 +13,10 @@ Ground truth is only as good as its source: a map fused from one part of a seque
 rest (7-Scenes' KinectFusion) can disagree by centimetres. Per frame the bench therefore also records how many
 frame points lie within 1 cm of the map at the ground-truth pose and at the estimate; a failed frame whose
 estimate fits the map clearly better than its ground truth is counted in `gt_fits_worse`.
+
+Trust: per method the summary also gives `ok` precision (share of `ok` answers within 5 cm / 5°), the count of
+wrong `ok` answers and success by confidence band (`CONFIDENCE_BANDS`, a reliability table: a calibrated
+confidence has success rising with the band). The baselines' confidence is their ICP fitness.
 
 This module is a runner: it owns timing. It does no file I/O and prints nothing; the CLI does.
 """
@@ -34,9 +39,11 @@ from .localize.points import frame_to_points
 from .localize.refine import REFINE_METHODS
 from .result import Status
 
-BASE_METHODS = ("cadreg", "cadreg-nolabels", "fpfh-ransac", "refine-from-gt-perturbed")
+BASE_METHODS = ("cadreg", "cadreg-nolabels", "fpfh-ransac", "kiss-matcher", "refine-from-gt-perturbed")
 METHODS = BASE_METHODS + tuple(f"cadreg:{m}" for m in REFINE_METHODS) + tuple(
     f"refine-from-gt-perturbed:{m}" for m in REFINE_METHODS)
+# Lower edges of the confidence bands of the reliability table; the last band includes 1.
+CONFIDENCE_BANDS = (0.0, 0.5, 0.7, 0.9)
 
 
 @dataclass
@@ -53,6 +60,7 @@ class FrameOutcome:
     gt_overlap: float = float("nan")  # fraction of frame points within 5 cm of the map at the ground truth
     gt_fit_1cm: float = float("nan")  # ... within 1 cm at the ground truth
     est_fit_1cm: float = float("nan")  # ... within 1 cm at the estimate (nan without one)
+    confidence: float = float("nan")  # the method's own confidence in its answer, [0, 1]
 
 
 def check_method(name: str) -> str:
@@ -101,23 +109,37 @@ class Bench:
         self.localizer = localizer
         self.seed = seed
         self._fit_cache: tuple | None = None
+        self._kiss = None
+
+    def kiss(self):
+        """The KISS-Matcher peer (InvalidArgument with the install hint when the extra is missing)."""
+        if self._kiss is None:
+            from .localize.fallback import KissMatcher
+
+            self._kiss = KissMatcher(self.localizer.fpfh())
+        return self._kiss
 
     def run_one(self, method: str, index: int, frame: Frame, T_true: np.ndarray) -> FrameOutcome:
         loc = self.localizer
         rc = loc.config.refine
         t0 = time.perf_counter()
         stage_ms: dict[str, float] = {}
+        trust = float("nan")
+        if method == "kiss-matcher":
+            self.kiss()  # the map side is prepared once, outside the frame's time, as fpfh-ransac's features are
+            t0 = time.perf_counter()
         if method.startswith("cadreg"):
             refine = method.split(":", 1)[1] if ":" in method else None
             f = replace(frame, labels=None) if method == "cadreg-nolabels" else frame
             res = loc.localize(f, method=refine)
             T, status, stage_ms = res.T_map_camera, res.status.value, dict(res.diagnostics.stage_ms)
-        elif method == "fpfh-ransac":
+            trust = float(res.confidence)
+        elif method in ("fpfh-ransac", "kiss-matcher"):
             pts = frame_to_points(frame, pixel_stride=loc.config.frame.pixel_stride)
-            T, _ = loc.fpfh().register(pts.xyz)
+            T, _ = (loc.fpfh() if method == "fpfh-ransac" else self.kiss()).register(pts.xyz)
             fit, _ = loc.refine_map.fitness(transform_points(T, pts.xyz[:: max(1, len(pts) // 2000)]), inlier_m=rc.inlier_m)
             status = Status.OK.value if fit >= rc.min_fitness else Status.LOW_OVERLAP.value
-            T = T if status == Status.OK.value else None
+            T, trust = (T if status == Status.OK.value else None), fit
         elif method.startswith("refine-from-gt-perturbed"):
             refine = method.split(":", 1)[1] if ":" in method else rc.method
             rng = np.random.default_rng([self.seed, index])
@@ -137,7 +159,7 @@ class Bench:
             te, re_ = float("inf"), float("inf")
         else:
             te, re_ = pose_errors(np.asarray(T), T_true)
-        out = FrameOutcome(index, status, te, re_, total_ms, stage_ms)
+        out = FrameOutcome(index, status, te, re_, total_ms, stage_ms, confidence=trust)
         if T is not None:
             out.est_fit_1cm = self.fit_1cm(frame, np.asarray(T))
         return out
@@ -193,6 +215,15 @@ def summarize(outcomes: list[FrameOutcome]) -> dict:
     gt_worse = [o.index for o, ok in zip(outcomes, s5)
                 if not ok and np.isfinite(o.est_fit_1cm) and o.est_fit_1cm > o.gt_fit_1cm + 0.02]
     ms = [o.total_ms for o in outcomes]
+    ok = np.array([o.status == Status.OK.value for o in outcomes], dtype=bool)
+    conf = np.array([o.confidence for o in outcomes], dtype=float)
+    reliability: dict[str, dict] = {}
+    edges = CONFIDENCE_BANDS + (1.0 + 1e-9,)
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (conf >= lo) & (conf < hi)
+        if sel.any():
+            reliability[f"{lo:.1f}-{min(hi, 1.0):.1f}"] = {"frames": int(sel.sum()), "success_5cm_5deg": float(s5[sel].mean()),
+                                                          "ok": int((sel & ok).sum())}
     return {
         "frames": n,
         "success_5cm_5deg": float(s5.mean()) if n else 0.0,
@@ -204,6 +235,12 @@ def summarize(outcomes: list[FrameOutcome]) -> dict:
         "p90_rotation_deg": _stat(re_, 90),
         "median_ms": _stat(ms, 50),
         "p90_ms": _stat(ms, 90),
+        "p99_ms": _stat(ms, 99),
+        "max_ms": float(max(ms)) if ms else None,
+        # Trust: how often `ok` is right, how many `ok` answers are wrong, success by confidence band.
+        "ok_precision": float(s5[ok].mean()) if ok.any() else None,
+        "wrong_ok": int((ok & ~s5).sum()),
+        "reliability": reliability,
         "stage_ms": {s: {"p50": _stat([o.stage_ms.get(s, 0.0) for o in outcomes], 50),
                          "p90": _stat([o.stage_ms.get(s, 0.0) for o in outcomes], 90)} for s in stages},
         "status_counts": status_counts,
@@ -226,6 +263,8 @@ def run_bench(site, frames, methods: list[str], *, localizer: Localizer | None =
         check_method(m)
     localizer = localizer or Localizer.from_site(site)
     bench = Bench(site, localizer, seed=seed)
+    if "kiss-matcher" in methods:
+        bench.kiss()  # a missing extra fails here, with its install hint, before any frame runs
     indices = list(frames.indices)
     if limit is not None:
         indices = indices[:limit]
@@ -256,14 +295,18 @@ def format_table(report: dict) -> str:
         return "-" if x is None else f"{x * scale:.{digits}f}"
 
     lines = [f"frames: {report['frames']}" + (f" (skipped without pose: {len(report['skipped'])})" if report["skipped"] else "")]
-    head = f"{'method':34s} {'@5cm/5°':>8s} {'@10cm/10°':>9s} {'med t cm':>8s} {'p90 t cm':>8s} {'med r °':>7s} {'p90 r °':>7s} {'med ms':>7s} {'p90 ms':>7s}  statuses"
+    head = (f"{'method':34s} {'@5cm/5°':>8s} {'@10cm/10°':>9s} {'med t cm':>8s} {'p90 t cm':>8s} {'med r °':>7s} "
+            f"{'p90 r °':>7s} {'med ms':>7s} {'p90 ms':>7s} {'p99 ms':>7s} {'max ms':>7s} {'ok prec':>7s} {'bad ok':>6s}  statuses")
     lines.append(head)
     for name, s in report["methods"].items():
         st = " ".join(f"{k}={v}" for k, v in sorted(s["status_counts"].items()))
+        prec = s.get("ok_precision")
         lines.append(f"{name:34s} {100 * s['success_5cm_5deg']:7.1f}% {100 * s['success_10cm_10deg']:8.1f}% "
                      f"{f(s['median_translation_m'], 100, 2):>8s} {f(s['p90_translation_m'], 100, 2):>8s} "
                      f"{f(s['median_rotation_deg'], 1, 2):>7s} {f(s['p90_rotation_deg'], 1, 2):>7s} "
-                     f"{f(s['median_ms'], 1, 0):>7s} {f(s['p90_ms'], 1, 0):>7s}  {st}")
+                     f"{f(s['median_ms'], 1, 0):>7s} {f(s['p90_ms'], 1, 0):>7s} {f(s.get('p99_ms'), 1, 0):>7s} "
+                     f"{f(s.get('max_ms'), 1, 0):>7s} {'-' if prec is None else f'{100 * prec:.1f}%':>7s} "
+                     f"{s.get('wrong_ok', 0):>6d}  {st}")
     for name, s in report["methods"].items():
         if s["stage_ms"]:
             parts = " ".join(f"{k}={f(v['p50'], 1, 0)}/{f(v['p90'], 1, 0)}" for k, v in s["stage_ms"].items())
@@ -275,6 +318,10 @@ def format_table(report: dict) -> str:
             parts = " ".join(f"{k}: {100 * v['success_5cm_5deg']:.0f}% of {v['frames']}"
                              for k, v in s["by_ground_truth_overlap"].items())
             lines.append(f"  {name} @5cm/5° by frame overlap with the map at ground truth: {parts}")
+        if s.get("reliability"):
+            parts = " ".join(f"[{k}] {100 * v['success_5cm_5deg']:.0f}% of {v['frames']} ({v['ok']} ok)"
+                             for k, v in s["reliability"].items())
+            lines.append(f"  {name} @5cm/5° by confidence: {parts}")
         if s.get("gt_fits_worse"):
             lines.append(f"  {name}: {s['gt_fits_worse']} failed frames fit the map better at the estimate than "
                          f"at their ground truth (1 cm inliers)")

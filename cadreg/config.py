@@ -173,12 +173,48 @@ class FallbackConfig(_Section):
                                            "frame's up direction further than this from the map's is refused")
 
 
+class TrackConfig(_Section):
+    """Tracking of a session's frames (a stream device, or HTTP with `session_id`): the next frame is refined from
+    the pose its motion predicts instead of localized from nothing (`localize/tracking.py`). Defaults measured on
+    7-Scenes RedKitchen at 30 fps against a map fused from other frames of the sequence."""
+
+    enabled: bool = Field(True, description="off: every session frame is localized globally (mode 'global')")
+    pixel_stride: int = Field(5, ge=1, description="every n-th depth pixel of a tracked frame: a start centimetres "
+                              "off needs fewer points than a search (on 7-Scenes stride 5 tracks as well as 2, 4x cheaper)")
+    coarse_correspondence_m: float = Field(0.2, gt=0, description="the coarse GICP from the prediction pairs points "
+                                           "this far apart: how far the prediction may be off")
+    coarse_iterations: int = Field(10, ge=1)
+    fine_voxel_m: float = Field(0.05, gt=0, description="frame resolution of the fine GICP of a tracked frame")
+    fine_correspondence_m: float = Field(0.1, gt=0)
+    fine_iterations: int = Field(12, ge=1, description="a tracked start is centimetres off: a dozen rounds converge")
+    check_points: int = Field(1000, ge=20, description="frame points of a tracked frame's fitness")
+    min_fitness: float = Field(0.4, ge=0, le=1, description="a tracked pose is answered 'ok' when at least this share "
+                               "of the frame lies on the map; lower than RefineConfig.min_fitness since the motion "
+                               "agrees too")
+    coast_fitness: float = Field(0.1, ge=0, le=1, description="below min_fitness but above this (the camera looks past "
+                                 "the map's edge), a frame whose correction is small is answered low_overlap and the "
+                                 "session follows it without a global search; below, tracking has failed")
+    max_correction_m: float = Field(0.05, gt=0, description="accept only when the refinement moved the prediction "
+                                    "by at most this (at 30 fps corrections are 0.2–2 cm): a larger pull is a slide "
+                                    "onto other surfaces, or a kidnap")
+    max_correction_deg: float = Field(3.0, gt=0, le=180, description="the same bound on rotation (0.1–1.5° seen)")
+    max_gap_s: float = Field(1.0, gt=0, description="a session frame this long after its last accepted one is "
+                             "localized globally (with the prediction as a prior): constant velocity is stale by then")
+    max_hypotheses: int = Field(4, ge=1, le=16, description="distinct hypotheses a session keeps tracking after an "
+                                "ambiguous answer (each costs one tracking refinement per frame)")
+    hypothesis_margin: float = Field(0.1, ge=0, le=1, description="an ambiguous answer's hypotheses within this score "
+                                     "of its best are tracked; tracked ones this far below the best are pruned")
+    clear_margin: float = Field(0.05, ge=0, le=1, description="with several hypotheses left, the best answers 'ok' "
+                                "only when its fitness beats every other's by this much")
+
+
 class LocalizeConfig(_Section):
     frame: FrameConfig = FrameConfig()
     cluster: ClusterConfig = ClusterConfig()
     match: MatchConfig = MatchConfig()
     refine: RefineConfig = RefineConfig()
     fallback: FallbackConfig = FallbackConfig()
+    track: TrackConfig = TrackConfig()
 
 
 # --- rendering and fusion (query frames from a mesh; maps from recorded frames) ---------------------------------

@@ -125,8 +125,13 @@ class Diagnostics:
 
     scan_objects : objects found in the frame. matches : of the winning graph hypothesis. roi : the refinement's
     region of interest, None when nothing was refined. refinement : the fine refinement, None likewise.
-    stage_ms : wall milliseconds per stage (points, cluster, gravity, match, verify, fallback, refine).
-    method : which path produced the pose: "cadreg" (the graph) | "fallback:<name>" | "prior".
+    stage_ms : wall milliseconds per stage (points, cluster, gravity, match, verify, fallback, refine; a tracked
+        frame: points, track; a session frame whose tracking failed also points_tried, track_tried).
+    method : which path produced the pose: "cadreg" (the graph) | "fallback:<name>" | "prior" | "track".
+    mode : for a session's frame (`localize/tracking.py`), how it was answered: "tracked" (refined from the
+        session's motion prediction), "relocalized" (the session's tracking failed or went stale: localized
+        globally with the prediction as a prior) or "global" (a new session: localized from nothing); None for
+        a frame outside any session.
     site_id, bundle_version : the site and bundle that answered. frame_points : valid depth points used.
     notes : what a person reading the result should know (up source, refused fallbacks, close rivals).
     """
@@ -141,6 +146,7 @@ class Diagnostics:
     bundle_version: str = ""
     frame_points: int = 0
     notes: list[str] = field(default_factory=list)
+    mode: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -154,6 +160,7 @@ class Diagnostics:
             "bundle_version": self.bundle_version,
             "frame_points": int(self.frame_points),
             "notes": list(self.notes),
+            "mode": self.mode,
         }
 
 

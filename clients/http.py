@@ -20,6 +20,7 @@ import asyncio
 import email.utils
 import math
 import time
+from dataclasses import replace
 from datetime import timezone
 from typing import Any, Callable
 from urllib.parse import quote
@@ -29,7 +30,7 @@ import numpy as np
 
 from .core import ClientCore
 from .errors import BadResponse, ClientError, ClientTimeout, Unreachable, error_from_body
-from .frames import FrameLike
+from .frames import EncodedFrame, FrameLike
 from .retry import RetryHook, RetryPolicy
 
 DEFAULT_CONNECT_TIMEOUT_S = 5.0
@@ -169,14 +170,17 @@ class Client(_Base):
         return self._retry_loop.call(send, self._sleep)
 
     def localize(
-        self, site_id: str, frame: FrameLike, *, frame_id: str | None = None, top_k: int | None = None
+        self, site_id: str, frame: FrameLike, *, frame_id: str | None = None, top_k: int | None = None,
+        session_id: str | None = None,
     ) -> dict[str, Any]:
         """Localize one frame in a site; returns the result dict (raises a clients.errors class on failure).
 
         frame : cadreg Frame (encoded as PNG), EncodedFrame (sent as is), or (folder, index) of a recorded-frames
             folder (its files sent as they are).
+        session_id : a tracking session: its frames are tracked from the last pose (`diagnostics.mode`); send a
+            session's frames one at a time, in order.
         """
-        enc = self.encode(frame, frame_id=frame_id, top_k=top_k)
+        enc = with_session(self.encode(frame, frame_id=frame_id, top_k=top_k), session_id)
         files, data = enc.multipart()
         return self._request("POST", self._localize_path(site_id), files=files, data=data)
 
@@ -246,11 +250,12 @@ class AsyncClient(_Base):
         return await self._retry_loop.acall(send, self._sleep)
 
     async def localize(
-        self, site_id: str, frame: FrameLike, *, frame_id: str | None = None, top_k: int | None = None
+        self, site_id: str, frame: FrameLike, *, frame_id: str | None = None, top_k: int | None = None,
+        session_id: str | None = None,
     ) -> dict[str, Any]:
         """As `Client.localize`. Encoding a Frame or a folder entry runs here, on the event loop's thread; encode
         up front (`clients.frames.encode_*`) and pass EncodedFrame in hot loops."""
-        enc = self.encode(frame, frame_id=frame_id, top_k=top_k)
+        enc = with_session(self.encode(frame, frame_id=frame_id, top_k=top_k), session_id)
         files, data = enc.multipart()
         return await self._request("POST", self._localize_path(site_id), files=files, data=data)
 
@@ -273,4 +278,11 @@ class AsyncClient(_Base):
         return response.text
 
 
-__all__ = ["Client", "AsyncClient", "pose_of", "parse_retry_after"]
+def with_session(enc: EncodedFrame, session_id: str | None) -> EncodedFrame:
+    """The frame with `session_id` in its meta (unchanged when None)."""
+    if session_id is None:
+        return enc
+    return replace(enc, meta=enc.meta.model_copy(update={"session_id": session_id}))
+
+
+__all__ = ["Client", "AsyncClient", "pose_of", "parse_retry_after", "with_session"]

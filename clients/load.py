@@ -19,7 +19,7 @@ import math
 import os
 import re
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Protocol, Sequence
 
@@ -143,9 +143,12 @@ class RequestRecord:
     """One request of a run. Times are seconds from the start of the run (monotonic clock).
 
     scheduled_s : when it was due (open loop) or sent (closed loop); latency_ms counts from here.
-    code : None when the service answered with a result, else the error code (wire code or client-only code).
+    code : None when the service answered with a result, else the error code (wire code or client-only code;
+        "lost" for a stream frame that got no answer in time).
     status : the result's status (ok, ambiguous, no_match, ...) when answered.
     t_err_m, r_err_deg : pose errors against the frame's T_map_camera when both exist.
+    device : which of a stream run's devices sent it (0 otherwise). mode : the result's `diagnostics.mode` (tracked |
+        relocalized | global for a session's frames). stage_ms : the result's `diagnostics.stage_ms` (worker time).
     """
 
     seq: int
@@ -159,6 +162,9 @@ class RequestRecord:
     t_err_m: float | None = None
     r_err_deg: float | None = None
     has_truth: bool = False
+    device: int = 0
+    mode: str | None = None
+    stage_ms: dict[str, float] | None = None
 
 
 @dataclass
@@ -169,10 +175,17 @@ class LoadRun:
     plan: LoadPlan
     target: str
     rss_mb: dict[str, float] = field(default_factory=dict)
+    warmup: list[RequestRecord] = field(default_factory=list)  # stream runs: each device's warm-up frames
 
 
 def _score(record: RequestRecord, result: dict[str, Any], frame: EncodedFrame) -> None:
     record.status = str(result.get("status"))
+    diagnostics = result.get("diagnostics")
+    if isinstance(diagnostics, dict):
+        record.mode = diagnostics.get("mode")
+        stages = diagnostics.get("stage_ms")
+        if isinstance(stages, dict):
+            record.stage_ms = {str(k): float(v) for k, v in stages.items() if isinstance(v, (int, float))}
     if frame.T_map_camera is None:
         return
     record.has_truth = True
@@ -294,6 +307,228 @@ async def run_load(
     return LoadRun(sorted(records, key=lambda r: r.seq), wall_s, target.retries, plan, target.name, rss_mb)
 
 
+# --- stream runs: frames in order as tracked device sessions -----------------------------------------------------
+
+
+def parse_ranges(spec: str) -> list[tuple[int, int]]:
+    """"250:500" or "0:100,400:500" -> [(250, 500)] / [(0, 100), (400, 500)]: frame numbers A <= i < B, each range
+    in order, ranges concatenated (a kidnapped-robot stream jumps from one to the next). ValueError when malformed."""
+    out = []
+    for part in spec.split(","):
+        a, sep, b = part.strip().partition(":")
+        try:
+            lo, hi = int(a), int(b)
+        except ValueError:
+            raise ValueError(f"bad range {part!r}: expected A:B with integers A < B") from None
+        if not sep or lo < 0 or hi <= lo:
+            raise ValueError(f"bad range {part!r}: expected A:B with 0 <= A < B")
+        out.append((lo, hi))
+    if not out:
+        raise ValueError("empty range")
+    return out
+
+
+def select_indices(indices: Sequence[int], spec: str | None) -> list[int]:
+    """The folder's frame numbers inside the ranges of `spec` (all when None), in the ranges' order."""
+    if spec is None:
+        return list(indices)
+    have = set(indices)
+    return [i for lo, hi in parse_ranges(spec) for i in range(lo, hi) if i in have]
+
+
+@dataclass(frozen=True)
+class StreamPlan:
+    """K devices, each its own tracking session, each playing the frames in order at `rate_hz`.
+
+    n : frames per device (the sequence is cycled when longer; default: the sequence once).
+    device : device name (the only one when devices == 1, else the prefix of `<device>-<k>`).
+    lost_after_s : a frame with no answer this long after it was sent is lost.
+    warmup : the first frames of each device are sent one at a time, each after the answer to the one before, and
+        reported apart (`warmup` in the summary): a robot localizes once, then streams. The timed stream follows
+        with the next frame.
+    Every frame carries `stamp_s` = its place in the sequence / rate_hz (its capture time had it been recorded at
+    that rate), so the service times the motion as the sequence moved, not as the frames arrived.
+    """
+
+    devices: int = 1
+    rate_hz: float = 30.0
+    n: int | None = None
+    device: str = "load"
+    lost_after_s: float = 10.0
+    warmup: int = 1
+
+    def __post_init__(self) -> None:
+        if self.devices < 1:
+            raise ValueError("devices must be >= 1")
+        if self.warmup < 0:
+            raise ValueError("warmup must be >= 0")
+        if not (self.rate_hz > 0 and math.isfinite(self.rate_hz)):
+            raise ValueError("rate_hz must be a positive number")
+        if self.n is not None and self.n < 1:
+            raise ValueError("n must be >= 1")
+        if self.lost_after_s <= 0:
+            raise ValueError("lost_after_s must be positive")
+
+    mode = "stream"
+    concurrency = None
+
+    def device_name(self, k: int) -> str:
+        return self.device if self.devices == 1 else f"{self.device}-{k}"
+
+
+def _stream_records(frames: Sequence[EncodedFrame], plan: StreamPlan) -> tuple[list[list[RequestRecord]], list[list[RequestRecord]]]:
+    """(warm-up records, timed records) per device; `seq` is the frame's place in the device's sequence."""
+    n = plan.n if plan.n is not None else len(frames)
+    w = min(plan.warmup, n - 1)
+    period = 1.0 / plan.rate_hz
+    # devices start a fraction of a period apart, as independent robots would, not all on the same tick
+    timed = [[RequestRecord(seq=k, frame=k % len(frames), scheduled_s=(k - w) * period + d * period / plan.devices,
+                            sent_s=math.nan, device=d) for k in range(w, n)] for d in range(plan.devices)]
+    warm = [[RequestRecord(seq=k, frame=k % len(frames), scheduled_s=math.nan, sent_s=math.nan, device=d)
+             for k in range(w)] for d in range(plan.devices)]
+    return warm, timed
+
+
+def _stamped(frame: EncodedFrame, rec: RequestRecord, plan: StreamPlan, session_id: str | None = None) -> EncodedFrame:
+    update: dict[str, Any] = {"stamp_s": rec.seq / plan.rate_hz, "frame_id": f"{rec.device}:{rec.seq}"}
+    if session_id is not None:
+        update["session_id"] = session_id
+    return replace(frame, meta=frame.meta.model_copy(update=update))
+
+
+def run_stream_zenoh(endpoint: str, site_id: str, frames: Sequence[EncodedFrame], plan: StreamPlan, *,
+                     progress: Callable[[RequestRecord], None] | None = None) -> LoadRun:
+    """Play `frames` in order as `plan.devices` zenoh stream devices (`ZenohClient.stream`, one thread each),
+    frame k of a device published at its scheduled time; latency from that time to its pose message."""
+    import threading
+
+    if not frames:
+        raise ValueError("no frames to send")
+    warm, per_device = _stream_records(frames, plan)
+    client = ZenohClient(endpoint)
+    streams = [client.stream(site_id, plan.device_name(d), lost_after_s=plan.lost_after_s)
+               for d in range(plan.devices)]
+    for s in streams:
+        s.wait_ready()
+    lock = threading.Lock()
+    start = threading.Barrier(plan.devices)
+    t0 = time.monotonic()
+
+    def warm_up(d: int) -> None:
+        stream = streams[d]
+        for rec in warm[d]:
+            rec.sent_s = time.monotonic() - t0
+            rec.scheduled_s = rec.sent_s
+            stream.send(_stamped(frames[rec.frame], rec, plan))
+            for r in stream.results():
+                rec.done_s = rec.sent_s + r.latency_ms / 1e3
+                rec.latency_ms = r.latency_ms
+                if r.lost:
+                    rec.code = "lost"
+                elif r.error is not None:
+                    rec.code = r.error.code
+                else:
+                    _score(rec, r.result, frames[rec.frame])
+
+    def play(d: int) -> None:
+        nonlocal t0
+        warm_up(d)
+        if start.wait() == 0:
+            t0 = time.monotonic()  # the timed stream starts when every device is warm
+        start.wait()
+        stream, records = streams[d], per_device[d]
+        by_id: dict[str, RequestRecord] = {}
+
+        def take(results: list) -> None:
+            for r in results:
+                rec = by_id.pop(r.frame_id, None)
+                if rec is None:
+                    continue
+                rec.done_s = rec.sent_s + r.latency_ms / 1e3
+                rec.latency_ms = (rec.done_s - rec.scheduled_s) * 1e3
+                if r.lost:
+                    rec.code = "lost"
+                elif r.error is not None:
+                    rec.code = r.error.code
+                else:
+                    _score(rec, r.result, frames[rec.frame])
+                if progress is not None:
+                    with lock:
+                        progress(rec)
+
+        for rec in records:
+            while (delay := rec.scheduled_s - (time.monotonic() - t0)) > 0:
+                take(stream.poll(timeout_s=min(delay, 0.05)))
+            rec.sent_s = time.monotonic() - t0
+            by_id[stream.send(_stamped(frames[rec.frame], rec, plan))] = rec
+            take(stream.poll())
+        while stream.pending:
+            take(stream.poll(timeout_s=0.05))
+
+    threads = [threading.Thread(target=play, args=(d,), name=f"cadreg-load-stream-{d}") for d in range(plan.devices)]
+    try:
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        for s in streams:
+            s.close()
+        client.close()
+    records = sorted((r for recs in per_device for r in recs), key=lambda r: (r.scheduled_s, r.device))
+    return LoadRun(records, time.monotonic() - t0, client.retries, plan, f"zenoh stream {endpoint}",  # type: ignore[arg-type]
+                   warmup=[r for recs in warm for r in recs])
+
+
+async def run_stream_http(url: str, site_id: str, frames: Sequence[EncodedFrame], plan: StreamPlan, *,
+                          timeout_s: float = 60.0, retry: RetryPolicy | None = None,
+                          progress: Callable[[RequestRecord], None] | None = None, transport: Any = None) -> LoadRun:
+    """Play `frames` in order as `plan.devices` HTTP sessions (`session_id` = the device name): a device sends its
+    next frame at its scheduled time, or when its previous answer came if that was later (a session's frames go
+    one at a time); latency from the scheduled time."""
+    if not frames:
+        raise ValueError("no frames to send")
+    warm, per_device = _stream_records(frames, plan)
+    client = AsyncClient(url, read_timeout_s=timeout_s, deadline_s=timeout_s, retry=retry, transport=transport)
+    t0 = time.monotonic()
+
+    async def send(rec: RequestRecord, session: str, report: bool) -> None:
+        rec.sent_s = time.monotonic() - t0
+        if math.isnan(rec.scheduled_s):
+            rec.scheduled_s = rec.sent_s
+        try:
+            result = await client.localize(site_id, _stamped(frames[rec.frame], rec, plan, session))
+        except ClientError as exc:
+            rec.code = exc.code
+        else:
+            _score(rec, result, frames[rec.frame])
+        rec.done_s = time.monotonic() - t0
+        rec.latency_ms = (rec.done_s - rec.scheduled_s) * 1e3
+        if report and progress is not None:
+            progress(rec)
+
+    async def warm_up(d: int) -> None:
+        for rec in warm[d]:
+            await send(rec, plan.device_name(d), False)
+
+    async def play(d: int) -> None:
+        for rec in per_device[d]:
+            delay = rec.scheduled_s - (time.monotonic() - t0)
+            if delay > 0:
+                await asyncio.sleep(delay)
+            await send(rec, plan.device_name(d), True)
+
+    try:
+        await asyncio.gather(*(warm_up(d) for d in range(plan.devices)))
+        t0 = time.monotonic()  # the timed stream starts when every device is warm
+        await asyncio.gather(*(play(d) for d in range(plan.devices)))
+    finally:
+        await client.aclose()
+    records = sorted((r for recs in per_device for r in recs), key=lambda r: (r.scheduled_s, r.device))
+    return LoadRun(records, time.monotonic() - t0, client.retries, plan, f"http stream {url}",  # type: ignore[arg-type]
+                   warmup=[r for recs in warm for r in recs])
+
+
 def percentile(values: Sequence[float], q: float) -> float | None:
     return None if len(values) == 0 else float(np.percentile(np.asarray(values, dtype=float), q))
 
@@ -328,6 +563,9 @@ def summarize(run: LoadRun) -> dict[str, Any]:
     statuses: dict[str, int] = {}
     for r in ok:
         statuses[str(r.status)] = statuses.get(str(r.status), 0) + 1
+    stream = _stream_summary(run, ok) if isinstance(run.plan, StreamPlan) else {}
+    if stream:
+        errors.pop("lost", None)  # counted on its own
     return {
         "sent": len(run.records),
         "ok": len(ok),
@@ -348,6 +586,36 @@ def summarize(run: LoadRun) -> dict[str, Any]:
         "wall_s": run.wall_s,
         "target": run.target,
         "service_rss_mb": run.rss_mb or None,
+        **stream,
+    }
+
+
+def _stream_summary(run: LoadRun, answered: list[RequestRecord]) -> dict[str, Any]:
+    """A stream run's own keys (DESIGN §8 with --stream): answered, lost, tracked, relocalized (and global), the
+    devices and their rate, and the worker's time of tracked frames (sum of `diagnostics.stage_ms`, and per stage)."""
+    modes: dict[str, int] = {}
+    for r in answered:
+        modes[str(r.mode)] = modes.get(str(r.mode), 0) + 1
+    tracked = [r for r in answered if r.mode == "tracked" and r.stage_ms]
+    stages = sorted({k for r in tracked for k in r.stage_ms or {}})
+    plan: StreamPlan = run.plan  # type: ignore[assignment]
+    warm = run.warmup
+    return {
+        "warmup": {"frames": len(warm), "answered": sum(1 for r in warm if r.code is None),
+                   "latency_ms_max": max((r.latency_ms for r in warm if r.code is None), default=None),
+                   "modes": sorted({str(r.mode) for r in warm if r.code is None})},
+        "answered": len(answered),
+        "lost": sum(1 for r in run.records if r.code == "lost"),
+        "tracked": modes.get("tracked", 0),
+        "relocalized": modes.get("relocalized", 0),
+        "global": modes.get("global", 0),
+        "devices": plan.devices,
+        "rate_hz_per_device": plan.rate_hz,
+        "tracked_worker_ms": {
+            "p50": percentile([sum(r.stage_ms.values()) for r in tracked], 50),  # type: ignore[union-attr]
+            "p90": percentile([sum(r.stage_ms.values()) for r in tracked], 90),  # type: ignore[union-attr]
+            "stage_ms_p50": {k: percentile([r.stage_ms.get(k, 0.0) for r in tracked], 50) for k in stages},  # type: ignore[union-attr]
+        },
     }
 
 

@@ -16,8 +16,12 @@ def _ms(value: float | None) -> str:
 def format_table(summary: dict[str, Any]) -> str:
     """The summary of `clients.load.summarize` as an aligned two-column text table."""
     lat = summary["latency_ms"]
-    mode = (f"closed loop, concurrency {summary['concurrency']}" if summary.get("mode") == "closed"
-            else f"open loop, {summary.get('rate_hz')} frames/s")
+    if summary.get("mode") == "stream":
+        mode = f"stream, {summary.get('devices')} device(s) at {summary.get('rate_hz')} frames/s each, in order"
+    elif summary.get("mode") == "closed":
+        mode = f"closed loop, concurrency {summary['concurrency']}"
+    else:
+        mode = f"open loop, {summary.get('rate_hz')} frames/s"
     rows: list[tuple[str, str]] = [
         ("target", str(summary.get("target", ""))),
         ("mode", mode),
@@ -29,6 +33,19 @@ def format_table(summary: dict[str, Any]) -> str:
         ("latency p50 / p90 / p99 / max",
          f"{_ms(lat['p50'])} / {_ms(lat['p90'])} / {_ms(lat['p99'])} / {_ms(lat['max'])} ms"),
     ]
+    if summary.get("mode") == "stream":
+        warm = summary.get("warmup") or {}
+        if warm.get("frames"):
+            rows.append(("warm-up (apart)", f"{warm['answered']} of {warm['frames']} answered, max "
+                         f"{_ms(warm.get('latency_ms_max'))} ms, {', '.join(warm.get('modes') or []) or '-'}"))
+        rows.append(("answered / lost", f"{summary['answered']} / {summary['lost']}"))
+        rows.append(("tracked / relocalized / global",
+                     f"{summary['tracked']} / {summary['relocalized']} / {summary.get('global', 0)}"))
+        worker = summary.get("tracked_worker_ms") or {}
+        if worker.get("p50") is not None:
+            stages = ", ".join(f"{k} {v:.1f}" for k, v in (worker.get("stage_ms_p50") or {}).items())
+            rows.append(("tracked frame in the worker p50 / p90",
+                         f"{worker['p50']:.1f} / {worker['p90']:.1f} ms ({stages})"))
     if summary.get("status_counts"):
         rows.append(("result status", ", ".join(f"{k} {v}" for k, v in summary["status_counts"].items())))
     acc = summary.get("accuracy")

@@ -7,7 +7,10 @@
             for r in s.run(frames, rate_hz=5):             # publishes frames, yields StreamResult as poses come back
                 if r.lost: ...                             # no pose for r.frame_id within lost_after_s
                 elif r.error: ...                          # the service answered with an error body
-                else: r.result["T_map_camera"]
+                elif r.status == "ok": r.T_map_camera, r.mode   # mode: tracked | relocalized | global
+
+Each device is a tracking session on the service: its next frame is refined from its last pose (mode "tracked")
+until tracking fails, and is then localized globally ("relocalized").
 
 Keys, encodings and the session config are the service's (`service.zenoh_wire`). The session is a zenoh *client*
 connected to the given endpoint(s) (the service's `--zenoh-listen`), with multicast and gossip scouting off
@@ -29,6 +32,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Iterable, Iterator, Sequence
 
+import numpy as np
 import zenoh
 
 from cadreg.errors import CadregError
@@ -174,6 +178,27 @@ class StreamResult:
     @property
     def ok(self) -> bool:
         return self.result is not None
+
+    @property
+    def status(self) -> str | None:
+        """The result's status (ok, ambiguous, ...), None without a result."""
+        return None if self.result is None else self.result.get("status")
+
+    @property
+    def mode(self) -> str | None:
+        """How the service answered this frame of the device's tracking session: "tracked" (refined from the last
+        pose), "relocalized" (tracking failed: localized globally) or "global" (a new session); None without a
+        result."""
+        if self.result is None:
+            return None
+        diagnostics = self.result.get("diagnostics")
+        return diagnostics.get("mode") if isinstance(diagnostics, dict) else None
+
+    @property
+    def T_map_camera(self) -> np.ndarray | None:
+        """(4, 4) colour camera -> map when the result holds a pose (ok or ambiguous), else None."""
+        T = None if self.result is None else self.result.get("T_map_camera")
+        return None if T is None else np.asarray(T, dtype=np.float64)
 
 
 class PoseStream:

@@ -30,6 +30,7 @@ from cadreg.errors import CadregError, Overloaded, RequestTimeout, WorkerCrashed
 from .errors import error_from_body
 from .logs import log_event
 from .schemas import FrameMeta
+from .sessions import SessionJob
 from .worker import THREAD_VARS, WORKER_NAME_PREFIX, worker_main
 
 log = logging.getLogger("cadreg.service.pool")
@@ -46,6 +47,7 @@ class JobResult:
     worker_pid: int
     queue_ms: float
     run_ms: float
+    session_state: dict[str, Any] | None = None  # a session job's next tracking state (service/sessions.py)
 
 
 @dataclass
@@ -221,7 +223,8 @@ class WorkerPool:
         return self._queue_depth + idle - len(self._queue)
 
     def submit(self, site_id: str, version: str | None, parts: dict[str, bytes], meta: FrameMeta,
-               timeout_s: float | None = None, reserve: int = 0) -> concurrent.futures.Future:
+               timeout_s: float | None = None, reserve: int = 0,
+               session: SessionJob | None = None) -> concurrent.futures.Future:
         """Queue one localize job; the future yields a JobResult or raises a CadregError.
 
         `meta` is the FrameMeta validated at the entry; it travels to the worker as that object (pickled), which
@@ -230,6 +233,9 @@ class WorkerPool:
         Raises Overloaded at once when `workers + queue_depth` jobs are already waiting or running, or when taking
         this job would leave fewer than `reserve` places free: a low-priority source (zenoh stream frames) passes a
         reserve so that it never fills the places that queries and HTTP requests need.
+
+        `session` (a tracking session's state and the frame's time) makes the worker track the frame; the
+        JobResult then carries the session's next state.
         """
         if not isinstance(meta, FrameMeta):
             # a caller bug, not a client's: text here would be parsed in the worker, a second time
@@ -246,7 +252,7 @@ class WorkerPool:
                     detail={"queue": len(self._queue), "workers": self._n},
                 )
             job_id = next(self._ids)
-            job = _Job(job_id, ("localize", job_id, site_id, version, parts, meta), future, now,
+            job = _Job(job_id, ("localize", job_id, site_id, version, parts, meta, session), future, now,
                        now + (timeout_s or self._timeout_s))
             self._queue.append(job)
         self._wake()
@@ -419,12 +425,13 @@ class WorkerPool:
             self._retire(w, "start_failed", None)
         elif kind == "result" and w.job is not None and msg[1] == w.job.job_id:
             job, w.job, w.state = w.job, None, "idle"
-            _, _, ok, body, version = msg
+            _, _, ok, body, version, *more = msg
             spent = now - job.dispatched
             self._service_s = spent if self._service_s is None else 0.8 * self._service_s + 0.2 * spent
             if ok:
                 self._resolve(job.future, JobResult(body, version, w.pid or 0,
-                                               (job.dispatched - job.submitted) * 1e3, (now - job.dispatched) * 1e3))
+                                               (job.dispatched - job.submitted) * 1e3, (now - job.dispatched) * 1e3,
+                                               more[0] if more else None))
             else:
                 self._fail(job.future, error_from_body(body))
         elif kind == "loaded" and w.control is not None and msg[1] == w.control.job_id:

@@ -22,6 +22,7 @@ from .metrics import Metrics
 from .pool import JobResult, WorkerPool
 from .registry import SiteEntry, SiteRegistry, check_site_id, inspect_bundle
 from .schemas import FrameMeta
+from .sessions import SessionKey, SessionStore
 from .settings import Settings
 
 log = logging.getLogger("cadreg.service")
@@ -57,6 +58,7 @@ class Service:
         self.registry = SiteRegistry(settings.sites_root)
         self.pool: WorkerPool | None = None
         self.metrics = Metrics(lambda: self.pool, lambda: self.registry)
+        self.sessions = SessionStore(ttl_s=settings.session_ttl_s, max_sessions=settings.max_sessions)
         self.started = threading.Event()
 
     # --- life cycle -------------------------------------------------------------------------------------------------
@@ -102,10 +104,14 @@ class Service:
         return True
 
     def submit(self, site_id: str, parts: dict[str, bytes], meta: FrameMeta | str | bytes | dict,
-               timeout_s: float | None = None, reserve: int = 0) -> concurrent.futures.Future:
+               timeout_s: float | None = None, reserve: int = 0,
+               device_id: str | None = None) -> concurrent.futures.Future:
         """Validate what is cheap and queue the job; images are decoded in the worker. Checked here, for HTTP and
         zenoh alike: the site, the meta (validated once: the worker receives the FrameMeta object, not text to parse
-        again), the parts present, the label set, and each image's size from its header (`max_frame_pixels`)."""
+        again), the parts present, the label set, and each image's size from its header (`max_frame_pixels`).
+
+        A frame of a tracking session (meta `session_id`, or a zenoh stream `device_id`) goes with the session's
+        state (service/sessions.py); the state the worker returns is stored when the job is done."""
         # reserve: pool places this job must leave free (WorkerPool.submit); zenoh stream frames pass one
         entry = self.registry.get(site_id)
         meta = parse_meta(meta)
@@ -119,7 +125,20 @@ class Service:
         check_image_sizes(parts, self.settings.max_frame_pixels)
         if self.pool is None:
             raise Overloaded("the service is starting", retry_after_s=self.settings.retry_after_s)
-        return self.pool.submit(site_id, entry.version, parts, meta, timeout_s, reserve=reserve)
+        key = _session_key(site_id, meta, device_id)
+        if key is None:
+            return self.pool.submit(site_id, entry.version, parts, meta, timeout_s, reserve=reserve)
+        session = self.sessions.job(key, entry.version, meta.stamp_s)
+        future = self.pool.submit(site_id, entry.version, parts, meta, timeout_s, reserve=reserve, session=session)
+        # registered before any front end's callback: the state is stored before the device's next frame is taken
+        future.add_done_callback(lambda f: self._store_session(key, session.stamped, f))
+        return future
+
+    def _store_session(self, key: SessionKey, stamped: bool, future: concurrent.futures.Future) -> None:
+        if future.cancelled() or future.exception() is not None:
+            return  # an error teaches nothing about the pose: the session keeps its state
+        job = future.result()
+        self.sessions.store(key, job.session_state, job.site_version, stamped=stamped)
 
     def finish(self, job: JobResult, site_id: str, request_id: str) -> dict[str, Any]:
         """The answer body: the result plus request id, site id and the bundle version that answered."""
@@ -142,6 +161,7 @@ class Service:
                 raise InvalidFileError(f"{site_id}/site.json", f"bundle is site {entry.site_id!r}, not {site_id!r}")
             self._load_everywhere(entry)
             self.registry.swap(entry)
+            self.sessions.drop_site(site_id)  # their poses are in the map just replaced
             return entry
 
     def install_archive(self, site_id: str, archive: Path) -> SiteEntry:
@@ -166,6 +186,7 @@ class Service:
             entry = replace(entry, path=str(target.resolve()))
             self._load_everywhere(entry)
             self.registry.swap(entry)
+            self.sessions.drop_site(site_id)
             return entry
 
     def _probe(self, entry: SiteEntry) -> None:
@@ -185,6 +206,15 @@ class Service:
         # The pool settles a control by the request timeout (hung workers are replaced); the margin is for its
         # dispatcher only, never the worker start timeout.
         return self.settings.request_timeout_s + 5.0
+
+
+def _session_key(site_id: str, meta: FrameMeta, device_id: str | None) -> SessionKey | None:
+    """The session a frame belongs to: its meta's `session_id`, else its zenoh stream device, else none."""
+    if meta.session_id is not None:
+        return ("session", site_id, meta.session_id)
+    if device_id is not None:
+        return ("device", site_id, device_id)
+    return None
 
 
 def _check_label_set(entry: SiteEntry, meta: FrameMeta, has_labels: bool) -> None:

@@ -64,6 +64,15 @@ class FrameMeta(_Wire):
     top_k: WireInt | None = Field(
         None, ge=1, le=MAX_TOP_K, description="hypotheses to return; None = the service's configured default (match.top_k)"
     )
+    session_id: str | None = Field(
+        None, min_length=1, max_length=128, pattern=r"^[A-Za-z0-9._:-]+$",
+        description="tracking session: frames of one session are tracked from the last pose (diagnostics.mode); "
+        "a zenoh stream device is a session of its own without it",
+    )
+    stamp_s: WireFloat | None = Field(
+        None, description="capture time of the frame, seconds on the client's clock: a session's motion is timed by "
+        "it when given (by the frame's arrival otherwise); send it for every frame of a session or for none",
+    )
 
     @field_validator("T_color_depth", "pose_prior")
     @classmethod

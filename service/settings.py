@@ -111,6 +111,10 @@ class Settings(BaseSettings):
                                           "pool across all devices; a frame past it is refused (counted)")
     stream_pool_share: float = Field(0.5, gt=0, le=1, description="the share of the pool's capacity (workers + "
                                      "queue_depth) stream frames may fill; the rest stays for queries and HTTP")
+    session_ttl_s: float = Field(60.0, gt=0, le=86400, description="a tracking session (stream device or HTTP "
+                                 "session_id) unused this long is forgotten; its next frame is localized globally")
+    max_sessions: int = Field(1000, ge=1, le=1_000_000, description="tracking sessions held at once (a few kB each); "
+                              "at the cap the least recently used is forgotten")
     zenoh_shutdown_timeout_s: float = Field(10.0, ge=0, le=3600, description="at shutdown, how long in-flight zenoh "
                                             "queries may take to finish before they are answered 'shutting down'")
     log_requests: bool = True

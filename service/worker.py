@@ -5,12 +5,13 @@ variables below are set before numpy/open3d are imported in this process, which 
 the functions. Messages (tuples over a `multiprocessing` Pipe; pydantic models travel pickled, already validated):
 
     start (spawn args) worker_main(conn, [(site_id, bundle_dir), ...], LocalizeConfig, test_hooks)
-    parent -> worker   ("localize", job_id, site_id, version, parts: dict[str, bytes], meta: FrameMeta)
+    parent -> worker   ("localize", job_id, site_id, version, parts: dict[str, bytes], meta: FrameMeta,
+                        session: SessionJob | None)    a session's frame is tracked (Localizer.track)
                        ("load", job_id, site_id, path)     load (or reload) one site; keeps the previous version
                        ("probe", job_id, site_id, path)    build the site's localizer and drop it (an upload's check)
                        ("stop",)
     worker -> parent   ("ready", pid, [[site_id, version], ...])
-                       ("result", job_id, True, result_dict, version_used)
+                       ("result", job_id, True, result_dict, version_used, session_state | None)
                        ("result", job_id, False, error_body, None)
                        ("loaded", job_id, True, [site_id, version] | error_body)   (answers load and probe)
                        ("failed", error_body)              start-up failed (a site could not be loaded)
@@ -38,6 +39,7 @@ if TYPE_CHECKING:
     from cadreg.config import LocalizeConfig
 
     from .schemas import FrameMeta
+    from .sessions import SessionJob  # noqa: F401 - named in the message table above
 
 SLEEP_HOOK_PREFIX = "__sleep__:"  # test hook (settings.test_hooks): frame id "__sleep__:<seconds>"
 VERSIONS_KEPT = 2  # the version being replaced stays for requests already dispatched to it
@@ -117,14 +119,24 @@ def _top_k(meta: FrameMeta) -> int | None:
 def _localize(sites: _Sites, msg: tuple, test_hooks: bool) -> tuple:
     from .codec import decode_frame
 
-    _, job_id, site_id, version, parts, meta = msg
+    _, job_id, site_id, version, parts, meta, *more = msg
+    session = more[0] if more else None
     try:
         if test_hooks and meta.frame_id and meta.frame_id.startswith(SLEEP_HOOK_PREFIX):
             time.sleep(float(meta.frame_id[len(SLEEP_HOOK_PREFIX):]))
         localizer, used = sites.get(site_id, version)
         frame = decode_frame(parts, meta)
-        result = localizer.localize(frame, top_k=_top_k(meta))
-        return ("result", job_id, True, result.to_dict(), used)
+        if session is None:
+            result = localizer.localize(frame, top_k=_top_k(meta))
+            return ("result", job_id, True, result.to_dict(), used, None)
+        from cadreg.localize.tracking import TrackState
+
+        # a state stored for another version was dropped by the parent; one from an older version of this worker's
+        # site (answered with the newest here) is still a pose in nearly the same map, and tracking checks it
+        state = None if session.state is None else TrackState.from_dict(session.state)
+        tracked = localizer.track(frame, state, t_s=session.t_s, top_k=_top_k(meta))
+        return ("result", job_id, True, tracked.result.to_dict(), used,
+                None if tracked.state is None else tracked.state.to_dict())
     except Exception as exc:  # every failure goes back as an error body; the worker lives on
         if not hasattr(exc, "code"):
             log.exception("job %s failed", job_id)

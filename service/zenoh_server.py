@@ -427,7 +427,7 @@ class ZenohServer:
         try:
             parts, meta = unpack_envelope(payload)
             frame_id = meta.frame_id
-            future = self.service.submit(device.site_id, parts, meta, reserve=self._reserve)
+            future = self.service.submit(device.site_id, parts, meta, reserve=self._reserve, device_id=device.device_id)
         except Overloaded:
             self._put_back(device, payload, t0)
             return

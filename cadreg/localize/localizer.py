@@ -33,6 +33,7 @@ from .points import frame_to_points, voxel_downsample
 from .refine import REFINE_METHODS, RefineMap
 from .score import DistanceField, score_poses
 from .stages import Candidate, Choice, Scan, StageTimer, confidence, low_overlap_confidence
+from .tracking import Tracked, TrackState, track_frame
 
 # The quick screen of every graph hypothesis uses a third of the scoring points (at least this many): enough to
 # drop the hopeless ones, three times cheaper than the full check of those kept.
@@ -121,6 +122,13 @@ class Localizer:
         with timer("refine"):
             choice = self._refine(scan, candidates, method, diag)
         return self._result(scan, candidates, choice, top_k, diag, frame.frame_id)
+
+    def track(self, frame: Frame, state: TrackState | None, *, t_s: float, top_k: int | None = None) -> Tracked:
+        """One frame of a session: refined from the motion prediction of `state` when it is live (no clustering,
+        no graph match), else localized globally with the prediction as a prior (`tracking.py`). Returns the result
+        (`diagnostics.mode` = tracked | relocalized | global) and the session's next state. t_s : this frame's
+        time, seconds, on the clock of `state.t_s`."""
+        return track_frame(self, frame, state, t_s=t_s, top_k=top_k)
 
     # --- stages -------------------------------------------------------------------------------------------------
     def _check_request(self, frame: Frame, method: str | None, top_k: int | None) -> tuple[str, int]:

@@ -1,0 +1,320 @@
+"""Tracking a session's frames: the next frame of a stream is a small correction of the last pose, not a search.
+
+A session (a stream device, or an HTTP client sending `session_id`) holds a `TrackState`: the hypotheses it follows
+(one once it is sure; several after an `ambiguous` answer, at most TrackConfig.max_hypotheses), each with its last
+accepted pose and a constant-velocity motion, and the time of its last accepted frame. `track_frame` reads as its
+stages:
+
+    predict     each hypothesis's pose moved by its velocity over the time since the last accepted frame
+    points      the frame's points at the tracking stride, inside the region of interest (radius γ)
+    track       coarse then fine GICP from each prediction (the site's small_gicp maps, built once in
+                `Localizer.from_site`); accepted when the correction stays small (the motion agrees) and the
+                fitness holds; hypotheses that fall behind the best are pruned
+    result      `tracked`: ok once a single hypothesis remains, ambiguous while several do; low_overlap (no pose,
+                the session follows on) while the camera looks past the map's edge (TrackConfig.coast_fitness)
+    global      nothing accepted, no live state or a gap longer than TrackConfig.max_gap_s: the whole localizer,
+                with the best prediction as a prior (`relocalized`), or from nothing (`global`)
+
+The object clustering and graph matching of a global localization never run on a tracked frame.
+
+Never a silent jump: a relocalized pose that disagrees with where the session's motion put the camera is answered
+`ambiguous` (the tracked prediction is its rival) until the next frame tracks from it; an ambiguous session answers
+`ok` only when one hypothesis is left.
+
+The core has no clock: `t_s` (seconds, any monotonic clock, the same for a session's frames) comes from the runner.
+`TrackState.to_dict` / `from_dict` give the plain form a runner stores between frames.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import small_gicp
+from scipy.spatial.transform import Rotation
+
+from ..errors import InvalidArgument, InvalidFrame
+from ..frame import Frame
+from ..geometry import rotation_angle_deg, transform_points
+from ..result import Diagnostics, Hypothesis, LocalizationResult, Refinement, Roi, Status
+from .points import FramePoints, frame_to_points
+from .refine import covariance_from_hessian
+from .stages import StageTimer, confidence, low_overlap_confidence
+
+if TYPE_CHECKING:
+    from .localizer import Localizer
+
+MODES = ("tracked", "relocalized", "global")
+# Fewer frame points than this inside the ROI cannot carry a GICP: track with the whole frame instead.
+MIN_ROI_POINTS = 100
+# small_gicp's default neighbourhood for per-point covariances, as for the map's side.
+GICP_NEIGHBORS = 10
+
+
+@dataclass(frozen=True)
+class Track:
+    """One hypothesis a session follows.
+
+    T_map_camera : (4, 4) float64, colour camera -> map, metres: the last accepted pose.
+    velocity : (6,) float64, rotation vector (rad/s) then translation (m/s), both in the map frame: the constant
+        motion that predicts the next pose.
+    fitness : share of the last frame's points on the map at that pose, in [0, 1].
+    """
+
+    T_map_camera: np.ndarray
+    velocity: np.ndarray
+    fitness: float
+
+    def predict(self, dt_s: float) -> np.ndarray:
+        """(4, 4) T_map_camera `dt_s` seconds after the last accepted frame (dt_s < 0 is taken as 0)."""
+        dt = max(0.0, float(dt_s))
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(self.velocity[:3] * dt).as_matrix() @ self.T_map_camera[:3, :3]
+        T[:3, 3] = self.T_map_camera[:3, 3] + self.velocity[3:] * dt
+        return T
+
+
+@dataclass(frozen=True)
+class TrackState:
+    """What a session keeps between frames: hypotheses best first, the time of the last accepted frame (t_s,
+    seconds, the runner's clock), and `confirmed` = the poses were accepted by tracking (False right after a
+    relocalization that jumped: the next tracked frame confirms it)."""
+
+    tracks: tuple[Track, ...]
+    t_s: float
+    confirmed: bool = True
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able form (lists of floats): what a runner stores and hands back."""
+        return {"t_s": float(self.t_s), "confirmed": bool(self.confirmed),
+                "tracks": [{"T_map_camera": np.asarray(t.T_map_camera, dtype=float).tolist(),
+                            "velocity": np.asarray(t.velocity, dtype=float).tolist(), "fitness": float(t.fitness)}
+                           for t in self.tracks]}
+
+    @classmethod
+    def from_dict(cls, doc: dict[str, Any]) -> "TrackState":
+        """The state `to_dict` wrote; InvalidArgument for anything else."""
+        try:
+            tracks = tuple(Track(np.asarray(t["T_map_camera"], dtype=np.float64).reshape(4, 4),
+                                 np.asarray(t["velocity"], dtype=np.float64).reshape(6), float(t["fitness"]))
+                           for t in doc["tracks"])
+            return cls(tracks, float(doc["t_s"]), bool(doc.get("confirmed", True)))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InvalidArgument(f"not a tracking state: {exc}") from None
+
+
+@dataclass
+class Tracked:
+    """The answer to a session frame and the state for its next one (None: nothing worth keeping)."""
+
+    result: LocalizationResult
+    state: TrackState | None
+
+
+@dataclass
+class _Outcome:
+    """One hypothesis refined on this frame."""
+
+    prior: Track
+    predicted: np.ndarray
+    T_map_camera: np.ndarray
+    fitness: float
+    rmse_m: float
+    correction_m: float
+    correction_deg: float
+    iterations: int
+    converged: bool
+    covariance: np.ndarray | None
+    accepted: bool = False  # the motion agrees and the fitness is at least coast_fitness
+    on_map: bool = False  # ... and at least min_fitness: a pose to answer
+
+
+def velocity_between(T_prev: np.ndarray, T_next: np.ndarray, dt_s: float) -> np.ndarray:
+    """(6,) map-frame rotation vector rate (rad/s) and translation rate (m/s) that move T_prev to T_next in dt_s."""
+    if dt_s <= 1e-6:
+        return np.zeros(6)
+    w = Rotation.from_matrix(T_next[:3, :3] @ T_prev[:3, :3].T).as_rotvec()
+    return np.concatenate([w, T_next[:3, 3] - T_prev[:3, 3]]) / dt_s
+
+
+def _distinct(localizer: "Localizer", Ta: np.ndarray, Tb: np.ndarray) -> bool:
+    return localizer._distinct(Ta, Tb)
+
+
+def track_frame(localizer: "Localizer", frame: Frame, state: TrackState | None, *, t_s: float,
+                top_k: int | None = None) -> Tracked:
+    """One session frame: tracked from `state` when it is live, else localized globally (see the module docstring).
+
+    state : the session's state after its previous frame, None for a new session. t_s : this frame's time, seconds,
+    on the clock of `state.t_s`. Raises InvalidFrame for a frame that cannot be registered.
+    """
+    cfg = localizer.config.track
+    if not isinstance(frame, Frame):
+        raise InvalidFrame(f"expected a Frame, got {type(frame).__name__}")
+    if not np.isfinite(t_s):
+        raise InvalidArgument(f"t_s must be a finite time in seconds, got {t_s}")
+    if state is None or not state.tracks:
+        return _global(localizer, frame, None, None, t_s, top_k, "global", [])
+    dt_s = t_s - state.t_s
+    predictions = [tr.predict(dt_s) for tr in state.tracks]
+    if not cfg.enabled:
+        return _global(localizer, frame, state, predictions[0], t_s, top_k, "relocalized", ["tracking is off"])
+    if dt_s > cfg.max_gap_s:
+        return _global(localizer, frame, state, predictions[0], t_s, top_k, "relocalized",
+                       [f"{dt_s:.2f} s since the last accepted frame (more than {cfg.max_gap_s:g} s): not tracked"])
+    frame.validate()
+    diag = Diagnostics(site_id=localizer.site.site_id, bundle_version=localizer.site.version, mode="tracked")
+    timer = StageTimer(diag.stage_ms)
+    with timer("points"):
+        points, center_camera, check_xyz = _track_points(localizer, frame)
+        diag.frame_points = len(points)
+    with timer("track"):
+        outcomes = [_refine(localizer, points, check_xyz, tr, T) for tr, T in zip(state.tracks, predictions)]
+    accepted = [o for o in outcomes if o.accepted]
+    if not accepted:
+        best = max(outcomes, key=lambda o: o.fitness)
+        why = (f"tracking failed: fitness {best.fitness:.2f} (min {cfg.min_fitness:g}), correction "
+               f"{best.correction_m * 100:.1f} cm / {best.correction_deg:.1f}° (max {cfg.max_correction_m * 100:g} cm / "
+               f"{cfg.max_correction_deg:g}°)")
+        tracked = _global(localizer, frame, state, predictions[0], t_s, top_k, "relocalized", [why])
+        # the failed attempt's cost belongs to this frame's answer too
+        for k in ("points", "track"):
+            tracked.result.diagnostics.stage_ms[f"{k}_tried"] = diag.stage_ms[k]
+        return tracked
+    kept = _prune(localizer, accepted, cfg.clear_margin, cfg.max_hypotheses)
+    return _tracked_result(localizer, frame, state, kept, dt_s, t_s, center_camera, len(points), diag, top_k)
+
+
+# --- stages -----------------------------------------------------------------------------------------------------
+
+
+def _track_points(localizer: "Localizer", frame: Frame) -> tuple[FramePoints, np.ndarray, np.ndarray]:
+    """The frame's points at the tracking stride inside the ROI (radius γ about their centre, as in the localizer's
+    refine stage), that centre (colour-camera frame) and a fixed sample for the fitness."""
+    fc, cfg = localizer.config.frame, localizer.config.track
+    points = frame_to_points(frame, pixel_stride=cfg.pixel_stride, min_depth_m=fc.min_depth_m, max_depth_m=fc.max_depth_m)
+    if len(points) < fc.min_points:
+        raise InvalidFrame(f"only {len(points)} valid depth points in range {fc.min_depth_m}–{fc.max_depth_m} m")
+    center = points.xyz.mean(axis=0)
+    in_roi = np.flatnonzero(np.linalg.norm(points.xyz - center, axis=1) <= localizer.config.refine.roi_radius_m)
+    if len(in_roi) >= MIN_ROI_POINTS:
+        points = points.subset(in_roi)
+    check = np.random.default_rng(0).choice(len(points), min(cfg.check_points, len(points)), replace=False)
+    return points, center, points.xyz[check]
+
+
+def _refine(localizer: "Localizer", points: FramePoints, check_xyz: np.ndarray, prior: Track,
+            predicted: np.ndarray) -> _Outcome:
+    """Coarse then fine GICP from the prediction against the site's small_gicp maps; accepted when the fitness
+    holds and the refinement moved the prediction little (the motion agrees)."""
+    cfg, rc = localizer.config.track, localizer.config.refine
+    rm = localizer.refine_map
+    coarse, _ = small_gicp.preprocess_points(points.xyz, rc.coarse_voxel_m, num_neighbors=GICP_NEIGHBORS)
+    T = rm.coarse_align(coarse, predicted, max_correspondence_m=cfg.coarse_correspondence_m,
+                        max_iterations=cfg.coarse_iterations)
+    fine, _ = small_gicp.preprocess_points(points.xyz, cfg.fine_voxel_m, num_neighbors=GICP_NEIGHBORS)
+    res = small_gicp.align(rm.sg_fine, fine, rm.sg_fine_tree, init_T_target_source=T, registration_type="GICP",
+                           max_correspondence_distance=cfg.fine_correspondence_m, num_threads=1,
+                           max_iterations=cfg.fine_iterations, translation_epsilon=rc.epsilon,
+                           rotation_epsilon=rc.epsilon)
+    T = np.asarray(res.T_target_source)
+    fitness, rmse = rm.fitness(transform_points(T, check_xyz), inlier_m=rc.inlier_m)
+    delta = np.linalg.inv(predicted) @ T
+    out = _Outcome(prior, predicted, T, fitness, rmse, float(np.linalg.norm(T[:3, 3] - predicted[:3, 3])),
+                   rotation_angle_deg(delta[:3, :3]), int(res.iterations), bool(res.converged),
+                   covariance_from_hessian(np.asarray(res.H), 2.0 * float(res.error), int(res.num_inliers)))
+    out.accepted = (fitness >= cfg.coast_fitness and out.correction_m <= cfg.max_correction_m
+                    and out.correction_deg <= cfg.max_correction_deg)
+    out.on_map = out.accepted and fitness >= cfg.min_fitness
+    return out
+
+
+def _prune(localizer: "Localizer", accepted: list[_Outcome], margin: float, count: int) -> list[_Outcome]:
+    """Best first; hypotheses that converged onto a better one are merged into it, those more than `margin`
+    behind the best are dropped, at most `count` kept."""
+    ranked = sorted(accepted, key=lambda o: -o.fitness)
+    kept: list[_Outcome] = []
+    for o in ranked:
+        if o.fitness < ranked[0].fitness - margin:
+            break
+        if all(_distinct(localizer, o.T_map_camera, k.T_map_camera) for k in kept):
+            kept.append(o)
+        if len(kept) == count:
+            break
+    return kept
+
+
+def _tracked_result(localizer: "Localizer", frame: Frame, state: TrackState, kept: list[_Outcome], dt_s: float,
+                    t_s: float, center_camera: np.ndarray, frame_points: int, diag: Diagnostics,
+                    top_k: int | None) -> Tracked:
+    cfg, mc, rc = localizer.config.track, localizer.config.match, localizer.config.refine
+    best = kept[0]
+    rival = kept[1].fitness if len(kept) > 1 else 0.0
+    diag.method = "track"
+    diag.refinement = Refinement(method="small_gicp", iterations=best.iterations, fitness=best.fitness,
+                                 inlier_rmse_m=best.rmse_m, converged=best.converged)
+    center = transform_points(best.T_map_camera, center_camera[None])[0]
+    diag.roi = Roi(center.tolist(), rc.roi_radius_m, localizer.refine_map.roi_count(center, rc.roi_radius_m),
+                   frame_points)
+    diag.notes.append(f"tracked {len(state.tracks)} hypothes{'i' if len(state.tracks) == 1 else 'e'}s, "
+                      f"{len(kept)} kept; correction {best.correction_m * 100:.1f} cm / {best.correction_deg:.1f}°")
+    tracks = tuple(Track(o.T_map_camera, velocity_between(o.prior.T_map_camera, o.T_map_camera, dt_s), o.fitness)
+                   for o in kept)
+    k = mc.top_k if top_k is None else int(top_k)
+    hypotheses = [Hypothesis(o.T_map_camera, 0.0, 0.0, 0.0, o.fitness, source="track") for o in kept[:k]]
+    if not best.on_map:
+        # the camera looks past the map's edge: too little to answer with, enough to follow (the correction is
+        # small), so the session goes on from here instead of paying for a global search every frame
+        diag.notes.append(f"fitness {best.fitness:.2f} below {cfg.min_fitness:g}: following the motion, no pose answered")
+        result = LocalizationResult(Status.LOW_OVERLAP, None, confidence=low_overlap_confidence(best.fitness),
+                                    hypotheses=hypotheses, diagnostics=diag, frame_id=frame.frame_id)
+        return Tracked(result, TrackState(tracks, t_s, confirmed=state.confirmed))
+    status = Status.OK if len(kept) == 1 else Status.AMBIGUOUS
+    if len(kept) > 1:
+        diag.notes.append(f"{len(kept)} hypotheses still fit (fitness " + ", ".join(f"{o.fitness:.3f}" for o in kept)
+                          + "): ambiguous until the following frames tell them apart")
+    trust = confidence(best.fitness, best.rmse_m, best.fitness - rival, inlier_m=rc.inlier_m,
+                       confident_margin=mc.confident_margin)
+    result = LocalizationResult(status, best.T_map_camera, confidence=trust, covariance=best.covariance,
+                                hypotheses=hypotheses, diagnostics=diag, frame_id=frame.frame_id)
+    return Tracked(result, TrackState(tracks, t_s, confirmed=True))
+
+
+def _global(localizer: "Localizer", frame: Frame, state: TrackState | None, predicted: np.ndarray | None, t_s: float,
+            top_k: int | None, mode: str, notes: list[str]) -> Tracked:
+    """The whole localizer, with the session's prediction as a prior (the client's own prior wins); then the state
+    its answer leaves. A relocalized pose far from the prediction is a jump: answered `ambiguous` until confirmed."""
+    cfg = localizer.config.track
+    if predicted is not None and frame.T_map_camera_prior is None:
+        frame = dataclasses.replace(frame, T_map_camera_prior=predicted)
+    result = localizer.localize(frame, top_k=top_k)
+    diag = result.diagnostics
+    diag.mode = mode
+    diag.notes[:0] = notes
+    if result.status not in (Status.OK, Status.AMBIGUOUS) or result.T_map_camera is None:
+        return Tracked(result, state)  # nothing learnt: the session keeps what it had (its gap grows)
+    T = np.asarray(result.T_map_camera)
+    tracks = [Track(T, np.zeros(6), result.diagnostics.refinement.fitness if result.diagnostics.refinement else 0.0)]
+    if result.status == Status.AMBIGUOUS:
+        best_score = max((h.geometric_score for h in result.hypotheses), default=0.0)
+        for h in result.hypotheses:
+            if len(tracks) == cfg.max_hypotheses:
+                break
+            if h.geometric_score >= best_score - cfg.hypothesis_margin and all(
+                    _distinct(localizer, h.T_map_camera, t.T_map_camera) for t in tracks):
+                tracks.append(Track(np.asarray(h.T_map_camera, dtype=np.float64), np.zeros(6), h.geometric_score))
+        if len(tracks) > 1:
+            diag.notes.append(f"the session tracks {len(tracks)} hypotheses until one remains")
+    confirmed = True
+    if predicted is not None and _distinct(localizer, T, predicted):
+        jump = float(np.linalg.norm(T[:3, 3] - predicted[:3, 3]))
+        diag.notes.append(f"relocalized {jump:.2f} m from where the session's motion put the camera")
+        if result.status == Status.OK:
+            # not silently: the pose waits for the next frame to track from it
+            result.status = Status.AMBIGUOUS
+            result.hypotheses.append(Hypothesis(predicted, 0.0, 0.0, 0.0, 0.0, source="track"))
+            diag.notes.append("answered ambiguous until the next frame tracks from the new pose")
+        confirmed = False
+    return Tracked(result, TrackState(tuple(tracks), t_s, confirmed=confirmed))

@@ -1,0 +1,159 @@
+"""Tracking a session's frames (cadreg/localize/tracking.py) on real 7-Scenes RedKitchen frames against a map fused
+from other frames: consecutive frames are tracked (cheap, centimetres), a wrong prediction or a stale state falls
+back to a global localization, extra hypotheses are pruned, and the state survives its plain form."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cadreg.config import LocalizeConfig, TrackConfig
+from cadreg.errors import InvalidArgument
+from cadreg.geometry import make_T, pose_errors
+from cadreg.io.frames import RecordedFrames
+from cadreg.localize.localizer import Localizer
+from cadreg.localize.tracking import Track, TrackState, velocity_between
+from cadreg.result import Status
+from cadreg.site.bundle import Site
+from tracking_support import redkitchen_site
+
+FIRST = 250  # the tracked frames start here (the map is fused from 200..249)
+
+
+@pytest.fixture(scope="module")
+def site_dir(redkitchen_dir: Path, tmp_path_factory) -> Path:
+    return redkitchen_site(redkitchen_dir, tmp_path_factory.mktemp("rk"))
+
+
+@pytest.fixture(scope="module")
+def localizer(site_dir: Path) -> Localizer:
+    return Localizer.from_site(Site.load(site_dir))
+
+
+@pytest.fixture(scope="module")
+def recorded(redkitchen_dir: Path) -> RecordedFrames:
+    return RecordedFrames.open(redkitchen_dir)
+
+
+def _state_at(T_map_camera: np.ndarray, t_s: float = 0.0) -> TrackState:
+    return TrackState((Track(np.asarray(T_map_camera, dtype=float), np.zeros(6), 1.0),), t_s)
+
+
+def test_thirty_consecutive_frames_are_tracked_within_5cm(localizer: Localizer, recorded: RecordedFrames) -> None:
+    state, modes, errors, track_ms = None, [], [], []
+    for k, i in enumerate(range(FIRST, FIRST + 30)):
+        frame, T_true = recorded.load(i)
+        tracked = localizer.track(frame, state, t_s=k / 30.0)
+        state = tracked.state
+        r = tracked.result
+        modes.append(r.diagnostics.mode)
+        assert r.status == Status.OK, (i, r.status, r.diagnostics.notes)
+        errors.append(pose_errors(r.T_map_camera, T_true))
+        if r.diagnostics.mode == "tracked":
+            stages = r.diagnostics.stage_ms
+            assert set(stages) == {"points", "track"}  # no clustering, no graph match, no fallback
+            assert r.diagnostics.method == "track"
+            track_ms.append(sum(stages.values()))
+    assert modes[0] == "global"  # a new session starts from nothing
+    assert modes.count("tracked") >= 27, modes
+    t_err = np.array([e[0] for e in errors])
+    r_err = np.array([e[1] for e in errors])
+    assert np.all(t_err < 0.05) and np.all(r_err < 5.0), (t_err.max(), r_err.max())
+    assert state is not None and len(state.tracks) == 1 and state.confirmed
+    # the camera moves between frames: the session learnt a velocity
+    assert np.linalg.norm(state.tracks[0].velocity[3:]) > 0.01
+
+
+def test_a_jump_is_relocalized_not_tracked(localizer: Localizer, recorded: RecordedFrames) -> None:
+    """A prediction 0.6 m off (the robot was carried away): the refinement from it fails the motion check, the
+    frame is localized globally with the prediction as a prior, and the jump is not answered `ok` at once."""
+    frame, T_true = recorded.load(FIRST + 40)
+    wrong = T_true @ make_T(t=np.array([0.6, 0.0, 0.0]))
+    tracked = localizer.track(frame, _state_at(wrong), t_s=1 / 30.0)
+    r = tracked.result
+    assert r.diagnostics.mode == "relocalized"
+    assert any(n.startswith("tracking failed") for n in r.diagnostics.notes), r.diagnostics.notes
+    assert "track_tried" in r.diagnostics.stage_ms
+    assert r.status == Status.AMBIGUOUS  # the new pose waits for the next frame to confirm it
+    assert any(n.startswith("relocalized") for n in r.diagnostics.notes), r.diagnostics.notes
+    assert pose_errors(r.T_map_camera, T_true)[0] < 0.05
+    assert not tracked.state.confirmed
+    # the next frame tracks from the relocalized pose and is ok
+    nxt, T_next = recorded.load(FIRST + 41)
+    follow = localizer.track(nxt, tracked.state, t_s=2 / 30.0)
+    assert follow.result.diagnostics.mode == "tracked" and follow.result.status == Status.OK
+    assert pose_errors(follow.result.T_map_camera, T_next)[0] < 0.05 and follow.state.confirmed
+
+
+def test_a_gap_longer_than_the_setting_is_localized_globally(localizer: Localizer, recorded: RecordedFrames) -> None:
+    frame, T_true = recorded.load(FIRST + 5)
+    gap = localizer.config.track.max_gap_s + 0.5
+    r = localizer.track(frame, _state_at(T_true), t_s=gap).result
+    assert r.diagnostics.mode == "relocalized"
+    assert any("since the last accepted frame" in n for n in r.diagnostics.notes)
+    assert "track" not in r.diagnostics.stage_ms  # not even tried
+
+
+def test_a_wrong_hypothesis_is_pruned_and_the_right_one_answers(localizer: Localizer,
+                                                                recorded: RecordedFrames) -> None:
+    """An ambiguous session tracks each hypothesis; the one the frame does not fit is dropped, the session is then
+    sure (ok). Two that fit equally stay, and the answer stays ambiguous."""
+    frame, T_true = recorded.load(FIRST + 10)
+    right = Track(T_true, np.zeros(6), 0.9)
+    wrong = Track(T_true @ make_T(t=np.array([0.0, 0.0, 0.8])), np.zeros(6), 0.9)
+    tracked = localizer.track(frame, TrackState((wrong, right), 0.0), t_s=1 / 30.0)
+    r = tracked.result
+    assert r.diagnostics.mode == "tracked" and r.status == Status.OK, r.diagnostics.notes
+    assert len(tracked.state.tracks) == 1
+    assert pose_errors(r.T_map_camera, T_true)[0] < 0.05
+    # the same hypothesis twice (converging onto one pose) merges into one
+    twice = localizer.track(frame, TrackState((right, right), 0.0), t_s=1 / 30.0)
+    assert len(twice.state.tracks) == 1 and twice.result.status == Status.OK
+
+
+def test_state_round_trips_its_plain_form_and_refuses_junk() -> None:
+    T = make_T(t=np.array([1.0, 2.0, 3.0]))
+    state = TrackState((Track(T, np.arange(6, dtype=float), 0.75),), 12.5, confirmed=False)
+    again = TrackState.from_dict(state.to_dict())
+    assert again.t_s == 12.5 and not again.confirmed
+    assert np.allclose(again.tracks[0].T_map_camera, T) and np.allclose(again.tracks[0].velocity, np.arange(6))
+    with pytest.raises(InvalidArgument):
+        TrackState.from_dict({"t_s": 0.0, "tracks": [{"T_map_camera": [[1, 2]], "velocity": [0] * 6, "fitness": 1}]})
+    with pytest.raises(InvalidArgument):
+        TrackState.from_dict({"tracks": []})
+
+
+def test_constant_velocity_prediction_recovers_a_known_motion() -> None:
+    """A seeded motion: the velocity between two poses predicts the third of a constant-velocity path."""
+    rng = np.random.default_rng(4)
+    from scipy.spatial.transform import Rotation
+
+    w = rng.normal(size=3) * 0.3  # rad/s
+    v = rng.normal(size=3) * 0.5  # m/s
+    T0 = make_T(Rotation.from_rotvec(rng.normal(size=3)).as_matrix(), rng.normal(size=3))
+
+    def at(t: float) -> np.ndarray:
+        return make_T(Rotation.from_rotvec(w * t).as_matrix() @ T0[:3, :3], T0[:3, 3] + v * t)
+
+    vel = velocity_between(at(0.0), at(0.1), 0.1)
+    assert np.allclose(vel[:3], w, atol=1e-9) and np.allclose(vel[3:], v, atol=1e-9)
+    t_err, r_err = pose_errors(Track(at(0.1), vel, 1.0).predict(0.1), at(0.2))
+    assert t_err < 1e-9 and r_err < 1e-6
+    assert np.allclose(Track(at(0.1), vel, 1.0).predict(-1.0), at(0.1))  # time never runs backwards
+
+
+def test_tracking_off_localizes_every_session_frame_globally(localizer: Localizer, recorded: RecordedFrames) -> None:
+    config = LocalizeConfig(track=TrackConfig(enabled=False))
+    off = Localizer(localizer.site, config, up=localizer.up, floor_height_m=localizer.floor_height_m,
+                    graph=localizer.graph, field=localizer.field, refine_map=localizer.refine_map)
+    frame, T_true = recorded.load(FIRST + 2)
+    r = off.track(frame, _state_at(T_true), t_s=1 / 30.0).result
+    assert r.diagnostics.mode == "relocalized" and "tracking is off" in r.diagnostics.notes
+
+
+def test_localize_outside_a_session_has_no_mode(localizer: Localizer, recorded: RecordedFrames) -> None:
+    frame, _ = recorded.load(FIRST)
+    result = localizer.localize(frame)
+    assert result.diagnostics.mode is None and result.to_dict()["diagnostics"]["mode"] is None
