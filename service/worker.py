@@ -11,7 +11,8 @@ the functions. Messages (tuples over a `multiprocessing` Pipe; pydantic models t
                        ("probe", job_id, site_id, path)    build the site's localizer and drop it (an upload's check)
                        ("stop",)
     worker -> parent   ("ready", pid, [[site_id, version], ...])
-                       ("result", job_id, True, result_dict, version_used, session_state | None)
+                       ("result", job_id, True, result_dict, version_used[, session_state | None])
+                                                       (the state only for a session's frame)
                        ("result", job_id, False, error_body, None)
                        ("loaded", job_id, True, [site_id, version] | error_body)   (answers load and probe)
                        ("failed", error_body)              start-up failed (a site could not be loaded)
@@ -128,7 +129,7 @@ def _localize(sites: _Sites, msg: tuple, test_hooks: bool) -> tuple:
         frame = decode_frame(parts, meta)
         if session is None:
             result = localizer.localize(frame, top_k=_top_k(meta))
-            return ("result", job_id, True, result.to_dict(), used, None)
+            return ("result", job_id, True, result.to_dict(), used)
         from cadreg.localize.tracking import TrackState
 
         # a state stored for another version was dropped by the parent; one from an older version of this worker's

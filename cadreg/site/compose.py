@@ -1,0 +1,160 @@
+"""Compose a multi-room site from room bundles: a building made of rooms, each placed by its `T_building_room`.
+
+A layout (LAYOUT.json) lists the rooms::
+
+    {"site_id": "twin-rooms",
+     "rooms": [{"name": "a", "bundle": "rooms/scene0470", "T_building_room": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]},
+               {"name": "b", "bundle": "rooms/scene0470", "T_building_room": [[1,0,0,6],...],
+                "drop_objects": ["cad-3"]}]}
+
+Bundle paths are relative to the layout file. The same bundle may appear several times (repeated rooms). Each
+room's map and raw points and graph nodes are moved into the building frame; node ids become "<name>/<id>";
+`drop_objects` removes objects of that room: their node, and their points in both clouds (inside the node's box
+grown by DROP_MARGIN_M), as when a chair is missing from one of two identical rooms. The graph's edges are
+rebuilt over all nodes with the rooms' δ (rooms touching each other get edges across). Instance ids are offset per
+room so that they stay distinct. The output is one ordinary bundle (cadreg/site/bundle.py), loaded and served as
+any other.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from ..errors import ConfigError, InvalidFileError
+from ..geometry import transform_points
+from ..pointset import PointSet
+from .bundle import Site
+from .graph import ObjectNode, build_graph
+
+# Points of a dropped object within this of its box go with it (CAD boxes are tight; scans bleed a little).
+DROP_MARGIN_M = 0.03
+# Instance ids of room k are offset by k times this (a room holds far fewer objects).
+INSTANCE_STRIDE = 1_000_000
+
+
+class RoomEntry(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9._-]+$",
+                      description="prefix of the room's node ids")
+    bundle: str = Field(min_length=1, description="room bundle directory, relative to the layout file")
+    T_building_room: list[list[float]] = Field(description="4x4 room -> building transform, metres")
+    drop_objects: list[str] = Field(default_factory=list, description="node ids (of the room's graph) to remove")
+
+    @field_validator("T_building_room")
+    @classmethod
+    def _rigid(cls, value: list[list[float]]) -> list[list[float]]:
+        T = np.asarray(value, dtype=float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ValueError("must be a finite 4x4 matrix")
+        R = T[:3, :3]
+        if not (np.allclose(R @ R.T, np.eye(3), atol=1e-6) and abs(np.linalg.det(R) - 1) < 1e-6
+                and np.allclose(T[3], [0, 0, 0, 1])):
+            raise ValueError("must be a rigid transform (rotation and translation)")
+        return value
+
+
+class Layout(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    site_id: str = Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+    rooms: list[RoomEntry] = Field(min_length=1)
+
+    @field_validator("rooms")
+    @classmethod
+    def _distinct_names(cls, rooms: list[RoomEntry]) -> list[RoomEntry]:
+        names = [r.name for r in rooms]
+        if len(set(names)) != len(names):
+            raise ValueError(f"room names must be distinct, got {names}")
+        return rooms
+
+
+def read_layout(path: str | Path) -> Layout:
+    """The checked layout at `path`; InvalidFileError naming it for bad JSON, ConfigError for bad fields."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InvalidFileError(path, "no such file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InvalidFileError(path, f"not a JSON layout: {exc}") from None
+    try:
+        return Layout.model_validate(doc)
+    except ValidationError as exc:
+        why = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
+        raise ConfigError(f"bad layout {path}: {why}") from None
+
+
+@dataclass
+class _Room:
+    entry: RoomEntry
+    site: Site
+    T: np.ndarray
+
+
+def _moved(cloud: PointSet, T: np.ndarray, instance_offset: int) -> PointSet:
+    """`cloud` in the building frame, its object instances offset (−1 stays −1)."""
+    instance = cloud.instance.astype(np.int64)
+    instance = np.where(instance >= 0, instance + instance_offset, -1)
+    normals = cloud.normals.astype(np.float64) @ T[:3, :3].T
+    return replace(cloud, points=transform_points(T, cloud.points.astype(np.float64)), normals=normals,
+                   instance=instance)
+
+
+def _outside_boxes(xyz: np.ndarray, nodes: list[ObjectNode]) -> np.ndarray:
+    """(n,) bool: points outside every node's oriented box grown by DROP_MARGIN_M (room frame)."""
+    keep = np.ones(len(xyz), dtype=bool)
+    for n in nodes:
+        local = (xyz - n.box_center) @ n.box_R
+        inside = np.all(np.abs(local) <= n.box_extent / 2 + DROP_MARGIN_M, axis=1)
+        keep &= ~inside
+    return keep
+
+
+def _moved_node(node: ObjectNode, name: str, T: np.ndarray) -> ObjectNode:
+    R, t = T[:3, :3], T[:3, 3]
+    return replace(node, id=f"{name}/{node.id}", centroid=R @ node.centroid + t, box_center=R @ node.box_center + t,
+                   box_R=R @ node.box_R)
+
+
+def compose_site(layout: Layout, root: str | Path) -> Site:
+    """The building site of `layout` (bundle paths relative to `root`). Rooms must share their classes and label
+    maps (the same label set and class names): ConfigError otherwise, and for a dropped id a room does not have."""
+    root = Path(root)
+    rooms = [_Room(e, Site.load(root / e.bundle), np.asarray(e.T_building_room, dtype=np.float64)) for e in layout.rooms]
+    first = rooms[0].site
+    for r in rooms[1:]:
+        if r.site.classes != first.classes or r.site.label_maps != first.label_maps:
+            raise ConfigError(f"room {r.entry.name!r} ({r.entry.bundle}) has other classes or label maps than "
+                              f"room {rooms[0].entry.name!r}: rooms of one site must share them")
+    maps, raws, nodes = [], [], []
+    for k, r in enumerate(rooms):
+        ids = {n.id for n in r.site.graph.nodes}
+        unknown = sorted(set(r.entry.drop_objects) - ids)
+        if unknown:
+            raise ConfigError(f"room {r.entry.name!r}: no object {unknown} to drop (has {sorted(ids)})")
+        dropped = [n for n in r.site.graph.nodes if n.id in r.entry.drop_objects]
+        site_map, site_raw = r.site.map, r.site.raw
+        if dropped:
+            site_map = site_map.take(_outside_boxes(site_map.points.astype(np.float64), dropped))
+            site_raw = site_raw.take(_outside_boxes(site_raw.points.astype(np.float64), dropped))
+        maps.append(_moved(site_map, r.T, k * INSTANCE_STRIDE))
+        raws.append(_moved(site_raw, r.T, k * INSTANCE_STRIDE))
+        nodes += [_moved_node(n, r.entry.name, r.T) for n in r.site.graph.nodes if n.id not in r.entry.drop_objects]
+    manifest: dict[str, Any] = {
+        key: first.manifest[key] for key in ("build_config",) if key in first.manifest
+    }
+    manifest["inputs"] = {"composed": [{"name": r.entry.name, "bundle": r.entry.bundle, "site_id": r.site.site_id,
+                                        "version": r.site.version, "T_building_room": r.entry.T_building_room,
+                                        "drop_objects": list(r.entry.drop_objects)} for r in rooms]}
+    site = Site(site_id=layout.site_id, version="", manifest=manifest, map=PointSet.concat(maps),
+                raw=PointSet.concat(raws), graph=build_graph(nodes, first.edge_max_m), classes=list(first.classes),
+                label_maps=dict(first.label_maps))
+    site.refresh_version()
+    return site
