@@ -200,6 +200,10 @@ class TrackConfig(_Section):
     max_correction_deg: float = Field(3.0, gt=0, le=180, description="the same bound on rotation (0.1–1.5° seen)")
     max_gap_s: float = Field(1.0, gt=0, description="a session frame this long after its last accepted one is "
                              "localized globally (with the prediction as a prior): constant velocity is stale by then")
+    search_interval_s: float = Field(1.0, ge=0, description="after a global search that found no pose, the session's "
+                                     "next one waits this long (frame time); frames in between are answered at "
+                                     "once from the cheap tracking attempt. A search costs 10–50 tracked frames: "
+                                     "searching every frame of a stream in unmapped space would drop most of them")
     max_hypotheses: int = Field(4, ge=1, le=16, description="distinct hypotheses a session keeps tracking after an "
                                 "ambiguous answer (each costs one tracking refinement per frame)")
     hypothesis_margin: float = Field(0.1, ge=0, le=1, description="an ambiguous answer's hypotheses within this score "

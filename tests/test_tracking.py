@@ -157,3 +157,19 @@ def test_localize_outside_a_session_has_no_mode(localizer: Localizer, recorded: 
     frame, _ = recorded.load(FIRST)
     result = localizer.localize(frame)
     assert result.diagnostics.mode is None and result.to_dict()["diagnostics"]["mode"] is None
+
+
+def test_after_a_fruitless_search_the_next_waits(localizer: Localizer, recorded: RecordedFrames) -> None:
+    """A session whose last global search found nothing is answered no_match at once (no search, no points) until
+    TrackConfig.search_interval_s has passed; then it searches again."""
+    frame, T_true = recorded.load(FIRST + 3)
+    interval = localizer.config.track.search_interval_s
+    lost = TrackState((), 10.0, confirmed=False, searched_s=10.0)
+    quick = localizer.track(frame, lost, t_s=10.0 + interval / 2)
+    assert quick.result.status == Status.NO_MATCH and quick.result.diagnostics.stage_ms == {}
+    assert quick.result.diagnostics.mode == "global" and quick.state == lost
+    again = localizer.track(frame, lost, t_s=10.0 + interval + 0.01)
+    assert again.result.status == Status.OK and "refine" in again.result.diagnostics.stage_ms
+    assert pose_errors(again.result.T_map_camera, T_true)[0] < 0.05
+    assert again.state.searched_s is None and len(again.state.tracks) == 1
+    assert TrackState.from_dict(lost.to_dict()) == lost

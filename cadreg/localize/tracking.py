@@ -13,7 +13,8 @@ stages:
     result      `tracked`: ok once a single hypothesis remains, ambiguous while several do; low_overlap (no pose,
                 the session follows on) while the camera looks past the map's edge (TrackConfig.coast_fitness)
     global      nothing accepted, no live state or a gap longer than TrackConfig.max_gap_s: the whole localizer,
-                with the best prediction as a prior (`relocalized`), or from nothing (`global`)
+                with the best prediction as a prior (`relocalized`), or from nothing (`global`); after a search
+                that found nothing, the next waits TrackConfig.search_interval_s (no_match at once meanwhile)
 
 The object clustering and graph matching of a global localization never run on a tracked frame.
 
@@ -80,15 +81,18 @@ class Track:
 class TrackState:
     """What a session keeps between frames: hypotheses best first, the time of the last accepted frame (t_s,
     seconds, the runner's clock), and `confirmed` = the poses were accepted by tracking (False right after a
-    relocalization that jumped: the next tracked frame confirms it)."""
+    relocalization that jumped: the next tracked frame confirms it). A session whose global search found nothing
+    keeps its tracks (or none) and the time of that search, `searched_s`."""
 
     tracks: tuple[Track, ...]
     t_s: float
     confirmed: bool = True
+    searched_s: float | None = None  # time of the last global search that found no pose (None: none since)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able form (lists of floats): what a runner stores and hands back."""
         return {"t_s": float(self.t_s), "confirmed": bool(self.confirmed),
+                "searched_s": None if self.searched_s is None else float(self.searched_s),
                 "tracks": [{"T_map_camera": np.asarray(t.T_map_camera, dtype=float).tolist(),
                             "velocity": np.asarray(t.velocity, dtype=float).tolist(), "fitness": float(t.fitness)}
                            for t in self.tracks]}
@@ -100,7 +104,9 @@ class TrackState:
             tracks = tuple(Track(np.asarray(t["T_map_camera"], dtype=np.float64).reshape(4, 4),
                                  np.asarray(t["velocity"], dtype=np.float64).reshape(6), float(t["fitness"]))
                            for t in doc["tracks"])
-            return cls(tracks, float(doc["t_s"]), bool(doc.get("confirmed", True)))
+            searched = doc.get("searched_s")
+            return cls(tracks, float(doc["t_s"]), bool(doc.get("confirmed", True)),
+                       None if searched is None else float(searched))
         except (KeyError, TypeError, ValueError) as exc:
             raise InvalidArgument(f"not a tracking state: {exc}") from None
 
@@ -156,7 +162,7 @@ def track_frame(localizer: "Localizer", frame: Frame, state: TrackState | None, 
     if not np.isfinite(t_s):
         raise InvalidArgument(f"t_s must be a finite time in seconds, got {t_s}")
     if state is None or not state.tracks:
-        return _global(localizer, frame, None, None, t_s, top_k, "global", [])
+        return _global(localizer, frame, state, None, t_s, top_k, "global", [])
     dt_s = t_s - state.t_s
     predictions = [tr.predict(dt_s) for tr in state.tracks]
     if not cfg.enabled:
@@ -282,11 +288,22 @@ def _tracked_result(localizer: "Localizer", frame: Frame, state: TrackState, kep
     return Tracked(result, TrackState(tracks, t_s, confirmed=True))
 
 
+def _deferred(localizer: "Localizer", frame: Frame, state: TrackState, t_s: float, mode: str,
+              notes: list[str]) -> Tracked:
+    """No pose, at once: the last global search found nothing less than TrackConfig.search_interval_s ago."""
+    wait_s = localizer.config.track.search_interval_s - (t_s - (state.searched_s or t_s))
+    diag = Diagnostics(site_id=localizer.site.site_id, bundle_version=localizer.site.version, mode=mode,
+                       notes=[*notes, f"no global search for another {wait_s:.2f} s: the last one found no pose"])
+    return Tracked(LocalizationResult(Status.NO_MATCH, diagnostics=diag, frame_id=frame.frame_id), state)
+
+
 def _global(localizer: "Localizer", frame: Frame, state: TrackState | None, predicted: np.ndarray | None, t_s: float,
             top_k: int | None, mode: str, notes: list[str]) -> Tracked:
     """The whole localizer, with the session's prediction as a prior (the client's own prior wins); then the state
     its answer leaves. A relocalized pose far from the prediction is a jump: answered `ambiguous` until confirmed."""
     cfg = localizer.config.track
+    if state is not None and state.searched_s is not None and 0 <= t_s - state.searched_s < cfg.search_interval_s:
+        return _deferred(localizer, frame, state, t_s, mode, notes)
     if predicted is not None and frame.T_map_camera_prior is None:
         frame = dataclasses.replace(frame, T_map_camera_prior=predicted)
     result = localizer.localize(frame, top_k=top_k)
@@ -294,7 +311,10 @@ def _global(localizer: "Localizer", frame: Frame, state: TrackState | None, pred
     diag.mode = mode
     diag.notes[:0] = notes
     if result.status not in (Status.OK, Status.AMBIGUOUS) or result.T_map_camera is None:
-        return Tracked(result, state)  # nothing learnt: the session keeps what it had (its gap grows)
+        # nothing learnt: the session keeps what it had (its gap grows) and waits before it searches again
+        kept = state.tracks if state is not None else ()
+        t_kept = state.t_s if state is not None else t_s
+        return Tracked(result, TrackState(kept, t_kept, confirmed=False, searched_s=t_s))
     T = np.asarray(result.T_map_camera)
     tracks = [Track(T, np.zeros(6), result.diagnostics.refinement.fitness if result.diagnostics.refinement else 0.0)]
     if result.status == Status.AMBIGUOUS:
