@@ -65,6 +65,8 @@ class AutoCadConfig(_Section):
     anisotropy_sigma: float = Field(0.15, gt=0, description="how far (log of the ratio) the fit may change a "
                                     "model's horizontal proportions before it costs like 1 cm of misfit per point: "
                                     "chairs of a kind differ by ~10 %, and free proportions let a wrong yaw fit")
+    cover_footprint: bool = Field(True, description="after the fit, grow the CAD's horizontal scales until its box "
+                                  "covers the instance's footprint")
     score_truncation_m: float = Field(0.05, gt=0, description="distances are capped at this in the Chamfer "
                                       "score, so unseen CAD parts (a chair's hidden legs) cost a bounded amount")
     support_search_m: float = Field(0.3, ge=0, description="the surface an object stands on is sought among "

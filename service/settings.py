@@ -104,6 +104,9 @@ class Settings(BaseSettings):
     zenoh_multicast_scouting: bool = Field(False, description="off unless asked: a peer would otherwise scout the LAN")
     zenoh_gossip_scouting: bool = False
     stream_queue_per_device: int = Field(2, ge=1, le=1000, description="frames kept per streaming device; older ones are dropped")
+    stream_in_flight_per_device: int = Field(2, ge=1, le=16, description="frames of one streaming device in the pool "
+                                             "at once: two let a tracked 30 fps device use both workers and catch "
+                                             "up after a global search; one keeps a device's answers in order")
     stream_device_ttl_s: float = Field(60.0, gt=0, le=86400, description="a streaming device idle this long is forgotten")
     stream_max_devices: int = Field(1000, ge=1, le=1_000_000, description="streaming devices tracked at once; at the cap "
                                     "the least recently seen idle one is forgotten, or a new device's frame is refused")

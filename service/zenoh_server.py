@@ -11,7 +11,9 @@ Keys, encodings and the session config are the wire contract of service/zenoh_wi
 No callbacks of ours run on zenoh's threads (zenoh-python: never block or call zenoh there): the queryable and the
 subscriber deliver into zenoh's own FIFO channels, and threads of our own drain them. One thread turns queries into
 pool jobs; one moves frames into a bounded deque per device; one hands each ready device's oldest frame to the pool,
-one frame in flight per device, round robin; one replies and publishes when the jobs are done.
+at most `stream_in_flight_per_device` frames in flight per device, round robin; one replies and publishes when the
+jobs are done. Each device is a tracking session (service/sessions.py): its frames are tracked from its last pose,
+and with two in flight a device's frames use both workers (the second is predicted from the same state).
 
 What a client cannot make grow (issue 14):
 - a payload over `max_upload_bytes` (the HTTP cap too) is refused as payload_too_large by its length, unread;
@@ -106,7 +108,7 @@ class _Device:
     site_id: str
     device_id: str
     frames: deque = field(default_factory=deque)  # (payload bytes, t0 perf_counter)
-    in_flight: bool = False
+    in_flight: int = 0  # frames of this device in the pool (at most stream_in_flight_per_device)
     ready: bool = False  # in ZenohServer._ready
     idle_since: float = 0.0  # time.monotonic()
 
@@ -390,7 +392,7 @@ class ZenohServer:
             self._forget(device)
 
     def _mark_ready(self, device: _Device) -> None:
-        if device.frames and not device.in_flight and not device.ready:
+        if device.frames and device.in_flight < self.settings.stream_in_flight_per_device and not device.ready:
             device.ready = True
             self._ready.append(device)
 
@@ -400,8 +402,9 @@ class ZenohServer:
         device.ready = False
         payload, t0 = device.frames.popleft()
         self._pending_bytes -= len(payload)
-        device.in_flight = True
+        device.in_flight += 1
         self._streams_in_flight += 1
+        self._mark_ready(device)  # room for another of its frames: back in the round robin, behind the others
         return device, payload, t0
 
     def _pool_has_room(self) -> bool:
@@ -442,7 +445,7 @@ class ZenohServer:
         """The pool had no room after all (HTTP took it first): the frame goes back to the head of its device and
         the device to the head of the ready deque, unless newer frames filled its queue meanwhile."""
         with self._cond:
-            device.in_flight = False
+            device.in_flight -= 1
             self._streams_in_flight -= 1
             if not self._stopping and len(device.frames) < self.settings.stream_queue_per_device:
                 device.frames.appendleft((payload, t0))
@@ -459,7 +462,7 @@ class ZenohServer:
 
     def _release(self, device: _Device) -> None:
         with self._cond:
-            device.in_flight = False
+            device.in_flight -= 1
             self._streams_in_flight -= 1
             if device.idle:
                 self._set_idle(device, time.monotonic())
