@@ -147,6 +147,10 @@ def register_site_fuse(site_sub: argparse._SubParsersAction) -> None:
     f.add_argument("--check-range", metavar="A:B",
                    help="held-out frames to check the map with: median and p90 distance of their depth, at their "
                         "poses, to the fused map (e.g. 250:500 when fusing 0:250)")
+    f.add_argument("--auto-cad", action="store_true",
+                   help="align the --cad-root library's CAD models to the labelled instances (frames need labels); "
+                        "writes them to SITE/auto_cad.scan2cad.json")
+    f.add_argument("--cad-root", type=Path, help="ShapeNet-style CAD library for --auto-cad")
     f.set_defaults(func=_site_fuse)
 
 
@@ -169,11 +173,18 @@ def parse_range(text: str | None, indices: list[int]) -> list[int]:
 
 
 def _site_fuse(args: argparse.Namespace) -> int:
-    from ..config import FuseConfig
+    import sys
+
+    from ..config import AutoCadConfig, FuseConfig
     from ..io.frames import RecordedFrames
     from ..site.fuse import fuse_site, map_accuracy
+    from .site_cmd import write_auto_cad
 
+    if args.auto_cad and args.cad_root is None:
+        raise ConfigError("--auto-cad needs --cad-root")
     frames = RecordedFrames.open(args.frames)
+    if args.auto_cad and not frames.has_labels():
+        raise ConfigError(f"--auto-cad needs labelled frames: {frames.root} has no label images")
     indices = parse_range(args.frame_range, frames.indices)
     check = parse_range(args.check_range, frames.indices) if args.check_range else []
     overrides = {}
@@ -190,10 +201,16 @@ def _site_fuse(args: argparse.Namespace) -> int:
         def progress(done: int, total: int) -> None:
             bar.update(done - bar.n)
 
-        site = fuse_site(frames, indices, site_id=site_id, config=config, progress=progress)
+        site = fuse_site(frames, indices, site_id=site_id, config=config, progress=progress,
+                         cad_root=args.cad_root, auto_cad=AutoCadConfig() if args.auto_cad else None)
     site.save(args.out)
     report = {"site_id": site.site_id, "version": site.version, "frames": len(indices),
               "points": len(site.map), "nodes": len(site.graph.nodes), "out": str(args.out)}
+    if args.auto_cad:
+        # stdout carries the one JSON report: the auto-CAD lines go to stderr
+        path = write_auto_cad(site, args.out, file=sys.stderr)
+        report["auto_cad"] = {"cad_nodes": sum(1 for n in site.graph.nodes if n.source == "cad"),
+                              "file": str(path)}
     if check:
         report["check"] = {"range": args.check_range, **map_accuracy(site.map.points, frames, check)}
     print(json.dumps(report))

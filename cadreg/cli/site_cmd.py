@@ -26,7 +26,7 @@ def _progress_bar(desc: str):
     return bar, update
 
 
-def write_auto_cad(site, out: Path) -> Path | None:
+def write_auto_cad(site, out: Path, file=None) -> Path | None:
     """Write the Scan2CAD file of a site built with auto-CAD into its bundle folder and print its notes and what
     it holds; None (nothing written) for a site built without."""
     from ..io.scan2cad import write_scan2cad
@@ -37,13 +37,13 @@ def write_auto_cad(site, out: Path) -> Path | None:
         return None
     report = site.manifest["enhance"]["auto_cad"]
     for note in report["notes"]:
-        print(f"note: {note}")
+        print(f"note: {note}", file=file)
     path = Path(out) / AUTO_CAD_FILE
     write_scan2cad(path, doc)
     models = doc[0]["aligned_models"]
     n_auto = sum(1 for m in models if m.get("origin") == "auto")
     print(f"auto-cad: {n_auto} of {len(report['instances'])} instances aligned in {report['elapsed_s']:.1f} s, "
-          f"{len(models)} CAD alignments -> {path} (edit it and rebuild with --scan2cad to adjust)")
+          f"{len(models)} CAD alignments -> {path} (edit it and rebuild with --scan2cad to adjust)", file=file)
     return path
 
 
@@ -194,6 +194,9 @@ def register(subparsers) -> None:
     from .render_cmd import register_site_fuse  # `site fuse` lives with the renderer's CLI (frames -> site)
 
     register_site_fuse(site_sub)
+    from .compose_cmd import register_site_compose  # `site compose`: rooms -> one building site
+
+    register_site_compose(site_sub)
 
     s = site_sub.add_parser("show", help="draw a top view of the map and its semantic graph")
     s.add_argument("site_dir", type=Path)

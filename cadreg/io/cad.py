@@ -63,7 +63,8 @@ def list_cad_library(cad_root: str | Path) -> list[CadLibraryEntry]:
     """
     root = Path(cad_root)
     if not root.is_dir():
-        raise InvalidFileError(root, "CAD library folder not found" if not root.exists() else "CAD library is not a folder")
+        reason = "CAD library folder not found" if not root.exists() else "CAD library is not a folder"
+        raise InvalidFileError(root, reason)
     entries: list[CadLibraryEntry] = []
     for synset_dir in sorted(p for p in root.iterdir() if p.is_dir()):
         ids = {p.name for p in synset_dir.iterdir() if p.is_dir()}

@@ -276,7 +276,8 @@ def support_height(raw: PointSet, structure: np.ndarray, points: np.ndarray, sea
     lo_xy, hi_xy = points[:, :2].min(axis=0) - search_m, points[:, :2].max(axis=0) + search_m
     z_min = float(points[:, 2].min())
     near = np.all((raw.points[:, :2] >= lo_xy) & (raw.points[:, :2] <= hi_xy), axis=1)
-    cand = near & ((raw.class_index < 0) | structure) & (np.abs(raw.normals[:, 2]) > 0.9) & (raw.points[:, 2] <= z_min + 0.02)
+    no_object = (raw.class_index < 0) | structure
+    cand = near & no_object & (np.abs(raw.normals[:, 2]) > 0.9) & (raw.points[:, 2] <= z_min + 0.02)
     z = np.sort(raw.points[cand, 2].astype(np.float64))
     if len(z) < 20:
         return z_min
@@ -434,6 +435,21 @@ def measure_fit(points: np.ndarray, vertices_map: np.ndarray, faces: np.ndarray,
                float(np.mean(d_cad <= c.inlier_m)), score)
 
 
+def _cover_footprint(x: np.ndarray, points: np.ndarray, m: ModelData) -> np.ndarray:
+    """Grow the horizontal scales (and shift the centre) so the CAD's box covers the instance's footprint along the
+    fitted axes (robust percentiles): a library model is rarely the scanned object, and a model that fits part of it
+    snugly leaves the rest outside its box, while the box is what the object node and the enhancement use."""
+    R2 = _Rz(x[0])[:2, :2]
+    local = (points[:, :2] - x[1:3]) @ R2
+    half = m.extent_up[:2] * np.exp(x[4:6]) / 2.0
+    lo = np.minimum(-half, np.percentile(local, 3.0, axis=0))
+    hi = np.maximum(half, np.percentile(local, 97.0, axis=0))
+    y = x.copy()
+    y[1:3] = x[1:3] + R2 @ ((lo + hi) / 2.0)
+    y[4:6] = np.log((hi - lo) / m.extent_up[:2])
+    return y
+
+
 def _distinct_best(hyps: list[np.ndarray], scores: list[float], k: int, period_deg: float) -> list[int]:
     """Indices of the k best-scoring hypotheses whose yaws are ≥ 20° apart (modulo the period): neighbours of one
     minimum would converge to the same pose and leave the other basins untried."""
@@ -463,6 +479,8 @@ def fit_model(points: np.ndarray, support_z: float, m: ModelData, c: AutoCadConf
         s = _chamfer(x, q, p, p_tree, tau)
         if s < best_score:
             best_x, best_score = x, s
+    if c.cover_footprint:
+        best_x = _cover_footprint(best_x, points, m)
     return ModelFit(m.cad_id, _A_map_cad(best_x, m.bottom_up), _apply(best_x, m.vertices_up),
                     float(np.degrees(best_x[0])), np.exp(best_x[4:7]), m.sym, best_score)
 

@@ -5,7 +5,8 @@ works. Labels are not fused in the grid: the extracted surface points are projec
 and each point takes the majority of the labels it sees where its depth agrees with the frame's (occlusion check).
 
     fuse_frames(frames, indices, *, config, progress) -> FusedCloud (points, colors, normals, labels | None)
-    fuse_site(frames, indices, *, site_id, config, build_config, progress) -> Site (via site_from_labelled_points)
+    fuse_site(frames, indices, *, site_id, config, build_config, progress, cad_root, auto_cad) -> Site (via
+        site_from_labelled_points; with auto_cad, CAD models aligned to the voted-label instances)
     map_accuracy(map_points, frames, indices) -> distances of held-out frames' depth to the map
 """
 
@@ -19,7 +20,7 @@ import open3d as o3d
 import open3d.core as o3c
 
 from ..camera import CameraIntrinsics
-from ..config import FuseConfig, SiteBuildConfig
+from ..config import AutoCadConfig, FuseConfig, SiteBuildConfig
 from ..errors import ConfigError
 from ..frame import Frame
 from ..geometry import invert_T, transform_points
@@ -190,9 +191,12 @@ def fuse_site(
     config: FuseConfig = FuseConfig(),
     build_config: SiteBuildConfig = SiteBuildConfig(),
     progress: Progress | None = None,
+    cad_root=None,
+    auto_cad: AutoCadConfig | None = None,
 ) -> "Site":  # noqa: F821  (imported lazily: the bundle pulls in the whole site build)
     """A site from TSDF-fused frames: objects from clustering of voted labels, none when the frames have no labels
-    (such a site localizes with the geometric fallback)."""
+    (such a site localizes with the geometric fallback). With `auto_cad` and a CAD library at `cad_root`, the
+    library's models are aligned to the labelled instances (cadreg/site/autocad.py); that needs labelled frames."""
     from .build import site_from_labelled_points
 
     indices = list(frames.indices if indices is None else indices)
@@ -218,6 +222,7 @@ def fuse_site(
     return site_from_labelled_points(
         cloud.points, cloud.colors, cloud.normals, cloud.labels, label_set=cloud.label_set if cloud.labels is not None
         else "nyu40", site_id=site_id, inputs=inputs, config=build_config, progress=_build_progress,
+        cad_root=cad_root, auto_cad=auto_cad,
     )
 
 

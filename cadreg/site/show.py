@@ -13,6 +13,12 @@ import numpy as np
 from .bundle import Site
 
 _MAX_DRAWN_POINTS = 60000
+_AUTO_CAD_MARKER = "D"  # CAD nodes from automatic alignment are diamonds (annotated ones: squares)
+
+
+def auto_cad_ids(site: Site) -> set[str]:
+    """Ids of the CAD nodes that came from automatic alignment (`site build --auto-cad`)."""
+    return {f["id"] for f in site.manifest.get("enhance", {}).get("cads", []) if f.get("origin") == "auto"}
 
 
 def class_colors(n: int) -> np.ndarray:
@@ -30,8 +36,10 @@ def draw_site_top_view(ax, site: Site, *, max_points: int = _MAX_DRAWN_POINTS, s
     """Top view (x right, y up, map frame, metres) of `site` on `ax`.
 
     Points without a class are grey, object points take their class colour (CAD points drawn on top); nodes are
-    markers (CAD: filled squares, cluster: hollow circles) labelled "<class>", edges are thin lines.
+    markers (CAD: filled squares when annotated, filled diamonds when auto-aligned; cluster: hollow circles)
+    labelled "<class>", edges are thin lines.
     """
+    auto = auto_cad_ids(site)
     rng = np.random.default_rng(seed)
     n = len(site.map)
     idx = rng.choice(n, size=min(n, max_points), replace=False) if n > max_points else np.arange(n)
@@ -51,8 +59,9 @@ def draw_site_top_view(ax, site: Site, *, max_points: int = _MAX_DRAWN_POINTS, s
             k = site.classes.index(node.cls) if node.cls in site.classes else -1
             col = palette[k] if k >= 0 else (0, 0, 0)
             if node.source == "cad":
-                ax.scatter([node.centroid[0]], [node.centroid[1]], marker="s", s=60, c=[col], edgecolors="k",
-                           linewidths=1.2, zorder=4)
+                auto_node = node.id in auto
+                ax.scatter([node.centroid[0]], [node.centroid[1]], marker=_AUTO_CAD_MARKER if auto_node else "s",
+                           s=80 if auto_node else 60, c=[col], edgecolors="k", linewidths=1.2, zorder=4)
             else:
                 ax.scatter([node.centroid[0]], [node.centroid[1]], marker="o", s=60, facecolors="none",
                            edgecolors=[col], linewidths=2.0, zorder=4)
@@ -76,13 +85,18 @@ def render_site_png(site: Site, *, dpi: int = 150) -> bytes:
     ax = fig.add_subplot(1, 1, 1)
     draw_site_top_view(ax, site)
     n_cad = sum(1 for n in site.graph.nodes if n.source == "cad")
+    n_auto = len(auto_cad_ids(site))
     ax.set_title(f"site {site.site_id} v{site.version}: {len(site.graph.nodes)} objects "
-                 f"({n_cad} CAD), {site.graph.graph.number_of_edges()} edges")
+                 f"({n_cad} CAD{f', {n_auto} auto-aligned' if n_auto else ''}), "
+                 f"{site.graph.graph.number_of_edges()} edges")
     handles = [
-        Line2D([], [], marker="s", ls="", mfc="w", mec="k", label="CAD node"),
+        Line2D([], [], marker="s", ls="", mfc="w", mec="k", label="CAD node (annotation)"),
         Line2D([], [], marker="o", ls="", mfc="none", mec="k", label="cluster node"),
         Line2D([], [], marker=".", ls="", color="0.72", label="no class (wall, floor, ...)"),
     ]
+    if n_auto:
+        handles.insert(1, Line2D([], [], marker=_AUTO_CAD_MARKER, ls="", mfc="w", mec="k",
+                                 label="CAD node (auto-aligned)"))
     ax.legend(handles=handles, loc="upper left", fontsize=7, framealpha=0.8)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
