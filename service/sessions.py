@@ -98,6 +98,11 @@ class SessionStore:
                 self._entries.popitem(last=False)
                 self.evicted += 1
 
+    def holds(self, key: SessionKey) -> bool:
+        """Whether `key` has a stored state (expiry aside): its next frame will likely be tracked, not searched."""
+        with self._lock:
+            return key in self._entries
+
     def drop_site(self, site_id: str) -> int:
         """Forget every session of `site_id` (a reload); returns how many."""
         with self._lock:

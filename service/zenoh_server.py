@@ -25,7 +25,8 @@ What a client cannot make grow (issue 14):
   cadreg_zenoh_refused_frames_total{reason};
 - stream frames fill at most `stream_pool_share` of the pool's places (workers + queue_depth): they are submitted with
   a reserve, so queries and HTTP requests always find the rest;
-- the next frame to submit is the head of a deque of ready devices (pending frames, nothing in flight): O(1).
+- the next frame to submit is the head of a deque of ready devices (pending frames, room in flight): O(1); devices
+  whose tracking session has a state go first, so new device ids (a global search each) never starve them.
 At shutdown (`stop`) new queries are answered 'shutting down' (overloaded), in-flight queries get their answers (up
 to `zenoh_shutdown_timeout_s`, then 'shutting down'), and only then are the entities undeclared and the session
 closed. Every log line is one JSON object (service/logs.py).
@@ -121,6 +122,38 @@ class _Device:
         return not self.frames and not self.in_flight
 
 
+class _ReadyDevices:
+    """Devices with a frame to submit, round robin, in two classes: those with a tracking state first (their
+    frames cost a refinement and a robot waits on them), then new or lost ones (a global search each). A flood of
+    new device ids then cannot push a tracked robot's next pose behind a thousand searches."""
+
+    def __init__(self) -> None:
+        self._tracked: deque[_Device] = deque()
+        self._new: deque[_Device] = deque()
+
+    def __bool__(self) -> bool:
+        return bool(self._tracked) or bool(self._new)
+
+    def append(self, device: _Device, tracked: bool) -> None:
+        (self._tracked if tracked else self._new).append(device)
+
+    def appendleft(self, device: _Device, tracked: bool) -> None:
+        (self._tracked if tracked else self._new).appendleft(device)
+
+    def popleft(self) -> _Device:
+        return self._tracked.popleft() if self._tracked else self._new.popleft()
+
+    def pop_waiting_new(self) -> _Device | None:
+        """The new device ready longest, when none of its frames is in flight (it can be forgotten whole)."""
+        if self._new and self._new[0].in_flight == 0:
+            return self._new.popleft()
+        return None
+
+    def clear(self) -> None:
+        self._tracked.clear()
+        self._new.clear()
+
+
 @dataclass(eq=False)
 class _PendingQuery:
     query: zenoh.Query
@@ -143,7 +176,7 @@ class ZenohServer:
         self._cond = threading.Condition()
         self._devices: dict[tuple[str, str], _Device] = {}
         self._idle: OrderedDict[tuple[str, str], _Device] = OrderedDict()  # idle devices, longest idle first
-        self._ready: deque[_Device] = deque()  # pending frames and nothing in flight, round robin
+        self._ready = _ReadyDevices()  # pending frames and room in flight, round robin, tracked sessions first
         self._pending_bytes = 0
         self._streams_in_flight = 0
         self._stopping = False
@@ -349,10 +382,12 @@ class ZenohServer:
             device = self._devices.get((site_id, device_id))
             if device is None:
                 if len(self._devices) >= self.settings.stream_max_devices:
-                    if not self._idle:  # every tracked device has work: the new one waits its turn outside
+                    if self._idle:
+                        self._forget(next(iter(self._idle.values())))  # the one idle longest
+                    elif not self._make_room_for(site_id, device_id):
+                        # every device has work: the new one waits its turn outside
                         metrics.zenoh_refused.labels("device_cap").inc()
                         return
-                    self._forget(next(iter(self._idle.values())))  # the one idle longest
                 device = self._devices[(site_id, device_id)] = _Device(site_id, device_id)
             full = len(device.frames) >= self.settings.stream_queue_per_device
             freed = len(device.frames[0][0]) if full else 0
@@ -394,7 +429,26 @@ class ZenohServer:
     def _mark_ready(self, device: _Device) -> None:
         if device.frames and device.in_flight < self.settings.stream_in_flight_per_device and not device.ready:
             device.ready = True
-            self._ready.append(device)
+            self._ready.append(device, self._tracked(device))
+
+    def _make_room_for(self, site_id: str, device_id: str) -> bool:
+        """At the device cap with no idle device: a device with a tracking session takes the place of the new
+        device waiting longest for its first search (its frames are dropped, counted); False when there is none."""
+        if not self.service.sessions.holds(("device", site_id, device_id)):
+            return False
+        victim = self._ready.pop_waiting_new()
+        if victim is None:
+            return False
+        for payload, _ in victim.frames:
+            self._pending_bytes -= len(payload)
+            self.service.metrics.zenoh_dropped.labels(victim.site_id).inc()
+        victim.frames.clear()
+        victim.ready = False
+        self._forget(victim)
+        return True
+
+    def _tracked(self, device: _Device) -> bool:
+        return self.service.sessions.holds(("device", device.site_id, device.device_id))
 
     def _take_next(self) -> tuple[_Device, bytes, float]:
         """The oldest frame of the first ready device (O(1)); it is then in flight."""
@@ -454,7 +508,7 @@ class ZenohServer:
                 self.service.metrics.zenoh_dropped.labels(device.site_id).inc()
             if device.frames and not device.ready:
                 device.ready = True
-                self._ready.appendleft(device)
+                self._ready.appendleft(device, self._tracked(device))
             elif device.idle:
                 self._set_idle(device, time.monotonic())
             self._cond.notify_all()
