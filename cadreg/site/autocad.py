@@ -2,9 +2,10 @@
 sites with no Scan2CAD annotation.
 
     load_library(cad_root) -> CadLibrary                    models by class, with their rotational symmetry
-    instance_jobs(raw, structure, clusters, library, ...) -> [AlignJob]   one per clustered instance of a class the
-                                                            library covers (the build's class-wise clustering)
-    align_instances(jobs, config) -> [InstanceResult]       best model per instance, on `config.workers` processes
+    AlignJob(instance, cls, points, support_z, models, config)   one per clustered instance of a class the library
+                                                            covers (made by cadreg.site.build.auto_cad_placements
+                                                            from the build's class-wise clustering)
+    align_instances(jobs, workers) -> [InstanceResult]      best model per instance, on `workers` processes
     scan2cad_record(id_scan, placements) -> dict            the alignments as a Scan2CAD record (identity scan trs)
 
 Furniture stands upright on the floor (maps are z up), so a fit has 7 parameters, not 10: yaw, translation and an
@@ -12,9 +13,11 @@ anisotropic scale. Per instance and model:
 1. yaw hypotheses: the 4 axes of the instance's minimum-area footprint rectangle and a coarse sweep, taken modulo
    the model's rotational symmetry about its up axis (found from the model's own geometry);
 2. per yaw, scale and translation from the instance's extents along the rotated axes, the bottom on the surface
-   the instance stands on (a table's legs are rarely labelled: its top alone would make it a slab);
-3. a truncated two-way Chamfer score ranks the hypotheses; the best few are refined by ICP restricted to the 7
-   parameters (nearest neighbours both ways from scipy's cKDTree, each step a robust scipy least_squares);
+   the instance stands on and the top at its top (a table's legs are rarely labelled: its top alone would make it
+   a slab);
+3. a truncated two-way Chamfer score ranks the hypotheses; the best few (with distinct yaws) are refined by ICP
+   restricted to yaw, horizontal translation and horizontal scales (nearest neighbours both ways from scipy's
+   cKDTree, each step a robust scipy least_squares), and the box then grown to cover the instance's footprint;
 4. the fit of the best one is measured against the instance both ways (median distance, coverage), with exact
    point-to-mesh distances (Open3D RaycastingScene), and the model is kept when it passes `AutoCadConfig`'s
    thresholds; else the instance stays a cluster node.
@@ -312,7 +315,8 @@ def _yaw_hypotheses(points: np.ndarray, sym: str, sweep_deg: float) -> list[floa
     period = _YAW_PERIOD_DEG[sym]
     try:
         T2, _ = trimesh.bounds.oriented_bounds_2D(points[:, :2])
-        rect = np.degrees(np.arctan2(-T2[0, 1], T2[0, 0]))  # T2 rotates the rectangle onto the axes; undo it
+        # T2 rotates the points by -yaw onto the axes: its first row is (cos yaw, sin yaw)
+        rect = np.degrees(np.arctan2(T2[0, 1], T2[0, 0]))
     except Exception:  # degenerate footprint (qhull): the sweep alone
         rect = 0.0
     cands = [rect + 90.0 * k for k in range(4)] + list(np.arange(0.0, 360.0, sweep_deg))

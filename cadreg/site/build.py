@@ -145,7 +145,7 @@ def _assemble(
                     "cads": enhanced.cad_fit},
     }
     if auto_report is not None:
-        auto_report["scan2cad"] = _scan2cad_records(site_id, placements, enhanced.cad_fit)
+        auto_report["scan2cad"] = _scan2cad_records(site_id, placements)
         meta["enhance"]["auto_cad"] = auto_report
     site = Site(site_id=site_id, version="", manifest=meta, map=m, raw=raw, graph=graph, classes=classes,
                 label_maps=default_label_maps())
@@ -226,12 +226,12 @@ def auto_cad_placements(
     return placements, report
 
 
-def _scan2cad_records(site_id: str, placements: list[CadPlacement], cad_fit: list[dict]) -> list[dict[str, Any]]:
+def _scan2cad_records(site_id: str, placements: list[CadPlacement]) -> list[dict[str, Any]]:
     """Every CAD of the site (annotated ones too, re-expressed in the map frame) as a Scan2CAD file's records."""
     from .autocad import aligned_model_record, scan2cad_record
 
     models = []
-    for pl, f in zip(placements, cad_fit):
+    for pl in placements:
         verts = np.asarray(pl.mesh.vertices)
         extra = {"origin": pl.origin, **({} if pl.fit is None else {"fit": pl.fit})}
         models.append(aligned_model_record(pl.cad_id, pl.A_scan_cad, verts.min(axis=0), verts.max(axis=0), pl.sym,
