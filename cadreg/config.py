@@ -140,6 +140,11 @@ class MatchConfig(_Section):
     confident_margin: float = Field(0.1, gt=0, description="a best that beats its distinct runner-up by this much "
                                     "score keeps its whole confidence; a tie halves it")
     refine_contenders: int = Field(3, ge=1, description="when ambiguous, this many best hypotheses are refined fully")
+    max_see_through: float = Field(0.1, ge=0, le=1, description="a pose at which more than this share of the map "
+                                   "in view lies in front of the frame's depth (space the sensor saw empty) is uncertain")
+    min_ok_confidence: float = Field(0.5, ge=0, le=1, description="below this confidence an answer is uncertain, not ok")
+    refine_points: int = Field(1500, ge=100, description="frame points (after the refinement's voxel grid) one fine "
+                               "refinement uses at most: its cost is bounded by points × iterations × contenders")
     distinct_translation_m: float = Field(0.3, gt=0)
     distinct_rotation_deg: float = Field(15.0, gt=0)
 
@@ -162,13 +167,39 @@ class RefineConfig(_Section):
     min_fitness: float = Field(0.5, ge=0, le=1, description="below this inlier fraction the result is low_overlap")
 
 
+class LabelFreeConfig(_Section):
+    """The label-free coarse stage (`localize/bbs.py`): with the frame's up direction known, a branch-and-bound
+    search over (x, y, z, yaw) on max-pooled score grids of the map built once per site. It joins the graph's
+    hypotheses whenever those are weak (FallbackConfig.min_graph_fitness), so labels add to it, not replace it."""
+
+    enabled: bool = True
+    voxel_m: float = Field(0.1, gt=0, description="finest grid cell: the translation step of the search's leaves "
+                           "(the coarse GICP that follows pulls in a start this far off)")
+    levels: int = Field(4, ge=1, le=7, description="pyramid levels above the finest: a root node covers 2^levels cells a side")
+    tau_m: float = Field(0.15, gt=0, description="a cell whose centre is d from the map scores max(0, 1 − (d/τ)²)")
+    reach_m: float = Field(4.0, gt=0, description="frame points farther than this from the camera are left out "
+                           "of the search (the grid is padded by it: memory grows with it)")
+    camera_margin_m: float = Field(1.0, ge=0, description="the camera may stand this far outside the box of the map "
+                                   "(a map that holds only what lies ahead of the camera)")
+    max_cells: int = Field(8_000_000, ge=10_000, description="cells of one pyramid level at most (one byte each); "
+                           "the cell grows until the map fits")
+    points: int = Field(128, ge=20, description="frame points scored per node: the cost of a node")
+    yaw_step_deg: float = Field(3.0, gt=0, le=30, description="yaw step of the search")
+    max_nodes: int = Field(1200, ge=10, description="nodes kept per level, highest bounds first: bounds the cost "
+                           "of any frame (levels × 8 × max_nodes × points lookups)")
+    keep_ratio: float = Field(0.85, gt=0, le=1, description="leaves scoring at least this share of the best are "
+                              "hypotheses (rivals are kept for the verification to judge)")
+    candidates: int = Field(5, ge=1, description="distinct best leaves pulled in by the coarse GICP")
+
+
 class FallbackConfig(_Section):
     """Geometric global registration when the graph has too little to say."""
 
     enabled: bool = True
     voxel_size_m: float = Field(0.05, gt=0, description="FPFH + RANSAC resolution")
-    grid_step_m: float = Field(0.2, gt=0, description="position step of the floor-constrained (x, y, yaw) search")
-    yaw_step_deg: float = Field(10.0, gt=0, le=90)
+    grid_step_m: float = Field(0.2, gt=0, description="position step of `fallback.floor_grid_search` (kept for "
+                               "callers; the localizer's label-free stage is LabelFreeConfig's search)")
+    yaw_step_deg: float = Field(10.0, gt=0, le=90, description="yaw step of `fallback.floor_grid_search`")
     min_graph_fitness: float = Field(0.9, ge=0, le=1, description="below this coarse fitness the graph's best is "
                                      "checked against the fallback too")
     max_up_disagreement_deg: float = Field(25.0, gt=0, le=180, description="an FPFH + RANSAC pose that tilts the "
@@ -218,6 +249,7 @@ class LocalizeConfig(_Section):
     frame: FrameConfig = FrameConfig()
     cluster: ClusterConfig = ClusterConfig()
     match: MatchConfig = MatchConfig()
+    label_free: LabelFreeConfig = LabelFreeConfig()
     refine: RefineConfig = RefineConfig()
     fallback: FallbackConfig = FallbackConfig()
     track: TrackConfig = TrackConfig()

@@ -18,6 +18,7 @@ from .geometry import R_to_quat_wxyz
 class Status(str, Enum):
     OK = "ok"
     AMBIGUOUS = "ambiguous"
+    UNCERTAIN = "uncertain"  # a pose with weak support or a close rival: in `hypotheses`, not claimed
     NO_OBJECTS = "no_objects"
     NO_MATCH = "no_match"
     LOW_OVERLAP = "low_overlap"

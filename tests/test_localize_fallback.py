@@ -56,14 +56,16 @@ def test_an_fpfh_pose_that_turns_the_camera_over_is_refused(scene, monkeypatch) 
     """FPFH + RANSAC ignores gravity; on a bare wall it may return the camera upside down. Such a pose is refused."""
     from dataclasses import replace
 
-    from cadreg.config import FallbackConfig, LocalizeConfig
+    from cadreg.config import FallbackConfig, LabelFreeConfig, LocalizeConfig
     from cadreg.localize import Localizer
 
     T = look_pose(np.array([3.1, 2.2, 1.45]), np.radians(200.0), np.radians(30.0))
     frame = render_frame(scene, T, intrinsics=CameraIntrinsics(160, 120, 144.0, 144.0, 79.5, 59.5))
     frame = replace(frame, labels=None, gravity_camera=T[:3, :3].T @ np.array([0.0, 0.0, -1.0]))
-    # min_graph_fitness 1: the fallback runs all its methods, FPFH + RANSAC included
-    loc = Localizer.from_site(scene.site, LocalizeConfig(fallback=FallbackConfig(min_graph_fitness=1.0)))
+    # min_graph_fitness 1 and no label-free search (with up known, FPFH + RANSAC runs only without it): the
+    # fallback comes to FPFH + RANSAC
+    loc = Localizer.from_site(scene.site, LocalizeConfig(fallback=FallbackConfig(min_graph_fitness=1.0),
+                                                         label_free=LabelFreeConfig(enabled=False)))
     upside_down = T @ make_T(R=np.diag([1.0, -1.0, -1.0]))  # turned 180° about the camera's x axis
     monkeypatch.setattr(FpfhRansac, "register", lambda self, xyz, **kw: (upside_down, 1.0))
     r = loc.localize(frame)

@@ -91,7 +91,7 @@ def test_without_labels_the_fallback_answers(scene, localizer) -> None:
     (f, T), = _views(scene, 1, seed=5, min_objects=3)
     r = localizer.localize(replace(f, labels=None))
     assert r.diagnostics.method.startswith("fallback:") and not r.diagnostics.scan_objects
-    assert r.diagnostics.method == "fallback:floor-grid"
+    assert r.diagnostics.method == "fallback:bbs"  # the label-free search (bbs.py)
     te, re_ = pose_errors(r.T_map_camera, T)
     assert te < 0.02 and re_ < 1.0
 

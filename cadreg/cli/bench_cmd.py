@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     config = LocalizeConfig()
     if args.map_points:
         config = config.model_copy(update={"refine": RefineConfig(**{**config.refine.model_dump(), "map_points": args.map_points})})
-    localizer = Localizer.from_site(site, config)
+    localizer = Localizer.from_site(site, config).warm()  # per-site structures now, not in a frame's time
     n = len(frames.indices) if args.limit is None else min(args.limit, len(frames.indices))
     bar = tqdm(total=n, desc="bench", unit="frame", file=sys.stderr)
 

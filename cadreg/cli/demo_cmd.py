@@ -51,7 +51,7 @@ def _demo(out: Path, n: int, seed: int, *, keep: bool) -> int:
     bar.close()
 
     frames = RecordedFrames.open(out / "frames")
-    localizer = Localizer.from_site(site)
+    localizer = Localizer.from_site(site).warm()  # per-site search structures now, not in a frame's time
     bench = Bench(site, localizer, seed=seed)
     outcomes = []
     print(f"\n{'frame':>5s} {'objects':>7s} {'status':>11s} {'t err cm':>8s} {'r err °':>7s} {'ms':>6s}")

@@ -30,6 +30,7 @@ class Floor:
     source: str
     inliers: int = 0
     floor_guess_m: float | None = None  # height above the lowest horizontal plane seen (maybe a table top)
+    normals: np.ndarray | None = None  # (m, 3) unit normals of the flat patches the up came from (source "surfaces")
 
 
 def fit_plane(points: np.ndarray, *, threshold_m: float = 0.02, iterations: int = 60,
@@ -182,7 +183,7 @@ def estimate_up_from_normals(xyz: np.ndarray, *, max_roll_deg: float = 25.0, pit
         w, V = np.linalg.eigh(walls.T @ walls / len(walls))
         if w[1] > second_wall_ratio * w[2]:
             u = V[:, 0] * np.sign(V[:, 0] @ u)
-        return Floor(u, None, "surfaces", int(perp[:, best].sum()))
+        return Floor(u, None, "surfaces", int(perp[:, best].sum()), normals=normals)
     n = normals[par[:, best]]
     n = n * np.sign(n @ u)[:, None]
     u = n.mean(axis=0)
@@ -196,7 +197,7 @@ def estimate_up_from_normals(xyz: np.ndarray, *, max_roll_deg: float = 25.0, pit
         if len(ok):
             k = ok[-1]
             guess = float(np.median(below[(below >= edges[k]) & (below <= edges[k + 1])]))
-    return Floor(u, None, "surfaces", int(par[:, best].sum()), floor_guess_m=guess)
+    return Floor(u, None, "surfaces", int(par[:, best].sum()), floor_guess_m=guess, normals=normals)
 
 
 def map_up_axis(normals: np.ndarray, *, tolerance_deg: float = 5.0, sample: int = 20000, candidates: int = 400,

@@ -5,7 +5,8 @@
     scan        frame -> points, class-wise clusters (the scan graph), up direction and floor
     hypotheses  coarse graph matching scored by Sim and a distance-field check (match.py)
     verify      a coarse GICP pulls each distinct hypothesis (and a client's prior) in, ranked by geometry, labels
-                and colour; the fallback (floor grid, then FPFH + RANSAC) when the graph's best is weak
+                and colour; when the graph's best is weak (no labels, no objects, no match) the label-free
+                search joins (branch-and-bound over x, y, z, yaw, `bbs.py`), FPFH + RANSAC only without an up
     refine      fine refinement inside the region of interest of the best, and of its close rivals
     result      status, confidence and diagnostics
 
@@ -15,6 +16,7 @@ Everything site-dependent is built once in `from_site` and reused for every fram
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 import small_gicp
@@ -26,13 +28,14 @@ from ..geometry import rotation_angle_deg, rotation_between, transform_points
 from ..result import Diagnostics, Hypothesis, LocalizationResult, Match, Refinement, Roi, ScanObject, Status
 from ..site.bundle import Site
 from .cluster import cluster_objects
-from .fallback import FpfhRansac, floor_grid_search
-from .gravity import estimate_floor, map_floor_height, map_up_axis
+from .bbs import GridPyramid, map_direction_histogram, polish, yaw_candidates
+from .fallback import FpfhRansac
+from .gravity import estimate_floor, map_floor_height, map_up_axis, planar_normals
 from .match import Hypotheses, MapGraph, distinct_best, gravity_hypotheses, kabsch_hypotheses, score_graph
-from .points import frame_to_points, voxel_downsample
+from .points import FramePoints, frame_to_points, voxel_downsample
 from .refine import REFINE_METHODS, RefineMap
-from .score import DistanceField, score_poses
-from .stages import Candidate, Choice, Scan, StageTimer, confidence, low_overlap_confidence
+from .score import DistanceField, ViewCheck, score_poses
+from .stages import Candidate, Choice, Scan, StageTimer, answer_status, confidence, low_overlap_confidence
 from .tracking import Tracked, TrackState, track_frame
 
 # The quick screen of every graph hypothesis uses a third of the scoring points (at least this many): enough to
@@ -41,7 +44,15 @@ SCREEN_SHARE = 3
 MIN_SCREEN_POINTS = 20
 # Fewer frame points than this inside the ROI cannot carry a GICP: refine with the whole frame instead.
 MIN_ROI_POINTS = 100
-FALLBACKS = ("floor-grid", "fpfh-ransac")  # cheapest first
+# Cheapest first. FPFH + RANSAC runs only when the label-free search could not (no up direction): it costs
+# ten times more and, knowing nothing of gravity, is no better where the search finds nothing.
+FALLBACKS = ("bbs", "fpfh-ransac")
+# The refinement's voxel grows by this factor until the ROI fits MatchConfig.refine_points.
+VOXEL_GROWTH = 1.25
+# A refinement whose whole-frame fitness fell by more than this from its start slid (see `_refine`).
+SLIDE_TOLERANCE = 0.01
+# Flat-surface normals sampled for the yaw candidates of the label-free search when the up estimate gave none.
+YAW_NORMAL_POINTS = 1000
 # Neighbours of each point's covariance in the coarse GICP: small_gicp's default, as for the map's side.
 GICP_NEIGHBORS = 10
 # An object's top is the 98th percentile of its points along up: the highest 2 % are mixed pixels and noise.
@@ -66,6 +77,8 @@ class Localizer:
         self.field = field
         self.refine_map = refine_map
         self._fpfh: FpfhRansac | None = None
+        self._pyramid: tuple[GridPyramid, np.ndarray | None] | None = None
+        self.view_check = ViewCheck(refine_map.xyz)
 
     @classmethod
     def from_site(cls, site: Site, config: LocalizeConfig = LocalizeConfig()) -> "Localizer":
@@ -93,7 +106,20 @@ class Localizer:
         a site), so that a long-running server does not make its first fallback request pay for it."""
         if self.config.fallback.enabled:
             self.fpfh()
+        if self.config.label_free.enabled:
+            self.pyramid()
         return self
+
+    def pyramid(self) -> tuple[GridPyramid, np.ndarray | None]:
+        """The label-free search's grid pyramid of this site and the map's histogram of wall directions (built on
+        first use, or by `warm`: about a second and (levels + 1) bytes a cell, LabelFreeConfig.max_cells at most)."""
+        if self._pyramid is None:
+            lf = self.config.label_free
+            every = self.site.cloud("both")
+            pyr = GridPyramid(self.field, every.points, self.up, voxel_m=lf.voxel_m, levels=lf.levels, tau_m=lf.tau_m,
+                              reach_m=lf.reach_m, margin_m=lf.camera_margin_m, max_cells=lf.max_cells)
+            self._pyramid = (pyr, map_direction_histogram(every.normals.astype(np.float64) @ pyr.R_level_map.T))
+        return self._pyramid
 
     def fpfh(self) -> FpfhRansac:
         """The FPFH + RANSAC registrar of this site (map features computed on first use)."""
@@ -169,7 +195,8 @@ class Localizer:
         fit = rng.choice(len(down), min(fc.fit_points, len(down)), replace=False)
         check = rng.choice(len(points), min(fc.check_points, len(points)), replace=False)
         return Scan(points, down, class_index, clusters, floor, score_xyz=down.xyz[score], fit_xyz=down.xyz[fit],
-                    fit_rgb=down.rgb[fit], fit_cls=class_index[fit], check_xyz=points.xyz[check])
+                    fit_rgb=down.rgb[fit], fit_cls=class_index[fit], check_xyz=points.xyz[check],
+                    zbuf=ViewCheck.zbuffer(down.xyz, frame.depth_intrinsics), K=frame.depth_intrinsics)
 
     def _hypotheses(self, scan: Scan) -> Hypotheses:
         """Scan graph x map graph -> the distinct best pose hypotheses (at most MatchConfig.candidates): a quick
@@ -230,9 +257,13 @@ class Localizer:
         if fb.enabled and best < fb.min_graph_fitness:
             with timer("fallback"):
                 for name in FALLBACKS:
+                    if name == "fpfh-ransac" and scan.floor is not None and self.config.label_free.enabled:
+                        break
                     found = self._fallback(name, scan, diag.notes)
                     if found is not None:
-                        candidates += self._coarse_align(found, source, scan, origin=f"fallback:{name}")
+                        # A pose the graph has already found stays the graph's (it carries the matches).
+                        candidates += [c for c in self._coarse_align(found, source, scan, origin=f"fallback:{name}")
+                                       if all(self._distinct(c.T_map_camera, g.T_map_camera) for g in candidates)]
                         best = max([best] + [c.score for c in candidates])
                         if best >= fb.min_graph_fitness:
                             break
@@ -253,11 +284,26 @@ class Localizer:
         center_camera = scan.points.xyz.mean(axis=0)
         in_roi = np.flatnonzero(np.linalg.norm(scan.points.xyz - center_camera, axis=1) <= rc.roi_radius_m)
         roi_points = scan.points.subset(in_roi) if len(in_roi) >= MIN_ROI_POINTS else scan.points
+        roi_frame_points = len(roi_points)
+        # The cost of a refinement is bounded by its inputs: at most MatchConfig.refine_points frame points
+        # (`_budget`), for at most refine_contenders hypotheses, each at most twice (the slide check below).
+        roi_points = self._budget(roi_points, method)
+        whole = None
         refined = []
         for c in contenders:
-            out = self.refine_map.refine(roi_points, c.T_map_camera, method=method, epsilon=rc.epsilon,
-                                         source_voxel_m=rc.source_voxel_m, max_correspondence_m=rc.max_correspondence_m,
-                                         max_iterations=rc.max_iterations)
+            out = self._refine_one(roi_points, c.T_map_camera, method)
+            if roi_frame_points < len(scan.points):
+                # The ROI leaves out the frame's far points; when those were what held the pose along some
+                # direction (a corner whose far wall lies beyond γ), the refinement slides and the whole frame
+                # fits worse than at its start. Then the whole frame (within the same point budget) refines it.
+                fit = lambda T: self.refine_map.fitness(transform_points(T, scan.check_xyz), inlier_m=rc.inlier_m)[0]  # noqa: E731
+                start = fit(c.T_map_camera)
+                if fit(out.T_map_camera) < start - SLIDE_TOLERANCE:
+                    whole = whole or self._budget(scan.points, method)
+                    again = self._refine_one(whole, c.T_map_camera, method)
+                    if fit(again.T_map_camera) > fit(out.T_map_camera):
+                        diag.notes.append("the ROI refinement slid: refined with the whole frame")
+                        out = again
             refined.append((self._agreement_score(out.T_map_camera, scan), out, c))
         if len(refined) > 1:
             refined.sort(key=lambda r: -r[0])
@@ -270,12 +316,32 @@ class Localizer:
             margin = best.score - (rival.score if has_rival else 0.0)
         _, out, winner = refined[0]
         fitness, rmse = self.refine_map.fitness(transform_points(out.T_map_camera, scan.check_xyz), inlier_m=rc.inlier_m)
-        return Choice(winner, out, margin, has_rival, fitness, rmse, center_camera, len(roi_points))
+        see = 0.0 if scan.zbuf is None else self.view_check.see_through(out.T_map_camera, scan.zbuf, scan.K)
+        return Choice(winner, out, margin, has_rival, fitness, rmse, center_camera, roi_frame_points, see)
+
+    def _budget(self, points: FramePoints, method: str) -> FramePoints:
+        """The refinement's input: at its own resolution or, when that leaves more than MatchConfig.refine_points,
+        at a coarser one that does not (a voxel grid, not a random sample: thin structure such as a door frame
+        keeps its points). The others sample their own scales (down to 2 cm) and get the points as they are."""
+        if method != "small_gicp":
+            return points
+        voxel = self.config.refine.source_voxel_m
+        sparse = voxel_downsample(points, voxel)
+        while len(sparse) > self.config.match.refine_points:
+            voxel *= VOXEL_GROWTH
+            sparse = voxel_downsample(points, voxel)
+        return sparse
+
+    def _refine_one(self, points: FramePoints, T_start: np.ndarray, method: str):
+        rc = self.config.refine
+        return self.refine_map.refine(points, T_start, method=method, epsilon=rc.epsilon, source_voxel_m=rc.source_voxel_m,
+                                      max_correspondence_m=rc.max_correspondence_m, max_iterations=rc.max_iterations)
 
     def _result(self, scan: Scan, candidates: list[Candidate], choice: Choice, top_k: int, diag: Diagnostics,
                 frame_id: str | None) -> LocalizationResult:
         """Choice -> result: `low_overlap` when too little of the frame lies on the map, `ambiguous` when a
-        distinct rival is within the ambiguity margin, else `ok`; confidence from `stages.confidence`."""
+        distinct rival is within the ambiguity margin, `uncertain` when the pose's support is weak (the frame sees
+        through the map there, or the confidence is low), else `ok`; confidence from `stages.confidence`."""
         mc, rc = self.config.match, self.config.refine
         out, winner = choice.outcome, choice.candidate
         T = out.T_map_camera
@@ -283,20 +349,32 @@ class Localizer:
         diag.refinement = Refinement(method=out.method, iterations=out.iterations, fitness=choice.fitness,
                                      inlier_rmse_m=choice.rmse_m, converged=out.converged)
         center = transform_points(T, choice.center_camera[None])[0]
-        diag.roi = Roi(center.tolist(), rc.roi_radius_m, self.refine_map.roi_count(center, rc.roi_radius_m),
-                       choice.roi_frame_points)
+        # The count alone (return_length): building the list of a 3 m ball's indices costs more than the search.
+        in_roi = int(self.refine_map.fit_tree.query_ball_point(center, rc.roi_radius_m, return_length=True))
+        diag.roi = Roi(center.tolist(), rc.roi_radius_m, in_roi, choice.roi_frame_points)
         if winner.hypothesis.source == "graph":
             diag.matches = [Match(i, self.graph.ids[a], self.site.classes[scan.clusters[i].cls])
                             for i, a in enumerate(winner.assignment) if a >= 0]
         hypotheses = [c.hypothesis for c in candidates[:top_k]]
-        if choice.fitness < rc.min_fitness:
+        trust = confidence(choice.fitness, choice.rmse_m, choice.margin, inlier_m=rc.inlier_m,
+                           confident_margin=mc.confident_margin, see_through=choice.see_through,
+                           max_see_through=mc.max_see_through)
+        status = answer_status(choice.fitness, choice.margin, choice.has_rival, choice.see_through, trust,
+                               min_fitness=rc.min_fitness, ambiguity_margin=mc.ambiguity_margin,
+                               max_see_through=mc.max_see_through, min_ok_confidence=mc.min_ok_confidence)
+        diag.notes.append(f"trust: fitness {choice.fitness:.3f}, rmse {100 * choice.rmse_m:.2f} cm, margin "
+                          f"{choice.margin:.3f}, see-through {choice.see_through:.3f}")
+        if status == Status.LOW_OVERLAP:
             diag.notes.append(f"fitness {choice.fitness:.2f} below {rc.min_fitness}")
             return LocalizationResult(Status.LOW_OVERLAP, None, confidence=low_overlap_confidence(choice.fitness),
                                       hypotheses=hypotheses, diagnostics=diag, frame_id=frame_id)
-        ambiguous = choice.has_rival and choice.margin < mc.ambiguity_margin
-        trust = confidence(choice.fitness, choice.rmse_m, choice.margin, inlier_m=rc.inlier_m,
-                           confident_margin=mc.confident_margin)
-        return LocalizationResult(Status.AMBIGUOUS if ambiguous else Status.OK, T, confidence=trust,
+        if status == Status.UNCERTAIN:
+            # Weak support: the refined pose goes first among the hypotheses, but it is not claimed.
+            diag.notes.append(f"uncertain: confidence {trust:.2f}, see-through {choice.see_through:.2f}")
+            best = replace(winner.hypothesis, T_map_camera=T)
+            return LocalizationResult(Status.UNCERTAIN, None, confidence=trust, hypotheses=[best] + hypotheses[:top_k - 1],
+                                      diagnostics=diag, frame_id=frame_id)
+        return LocalizationResult(status, T, confidence=trust,
                                   covariance=out.covariance, hypotheses=hypotheses, diagnostics=diag, frame_id=frame_id)
 
     def _no_pose(self, scan: Scan, diag: Diagnostics, frame_id: str | None) -> LocalizationResult:
@@ -307,20 +385,11 @@ class Localizer:
 
     # --- helpers ------------------------------------------------------------------------------------------------
     def _fallback(self, name: str, scan: Scan, notes: list[str]) -> Hypotheses | None:
-        """Hypotheses of one fallback method, or None when it cannot run (floor-grid needs up and a height) or
+        """Hypotheses of one fallback method, or None when it cannot run (the label-free search needs up) or
         found nothing the frame's up direction allows."""
         fb, floor = self.config.fallback, scan.floor
-        if name == "floor-grid":
-            height = None if floor is None else (floor.height_m if floor.height_m is not None else floor.floor_guess_m)
-            if height is None:
-                return None
-            R_level = rotation_between(floor.up_camera, self.up)
-            hyp = floor_grid_search(self.field, scan.score_xyz @ R_level.T, self.up, self.floor_height_m + height,
-                                    step_m=fb.grid_step_m, yaw_step_deg=fb.yaw_step_deg, R_level=R_level)
-            mc = self.config.match
-            keep = distinct_best(hyp.R, hyp.t, np.arange(len(hyp)), count=mc.candidates,
-                                 min_translation_m=mc.distinct_translation_m, min_rotation_deg=mc.distinct_rotation_deg)
-            return hyp.take(np.array(keep, dtype=np.int64))
+        if name == "bbs":
+            return self._label_free(scan, notes)
         T, _ = self.fpfh().register(scan.down.xyz)
         if floor is not None:
             # FPFH + RANSAC knows nothing of gravity: on a bare wall it happily returns the camera upside down.
@@ -331,6 +400,33 @@ class Localizer:
         hyp = _single(T)
         hyp.geometric = score_poses(self.field, scan.score_xyz, hyp.R, hyp.t, tau_m=self.config.match.score_tau_m)
         return hyp
+
+    def _label_free(self, scan: Scan, notes: list[str]) -> Hypotheses | None:
+        """The label-free search (bbs.py): level the frame by its up, pick the yaws its walls allow, branch and
+        bound over (x, y, z, yaw); the distinct best leaves as hypotheses. None without an up direction."""
+        lf, floor = self.config.label_free, scan.floor
+        if not lf.enabled or floor is None:
+            return None
+        pyr, map_hist = self.pyramid()
+        R_up = rotation_between(floor.up_camera, np.array([0.0, 0.0, 1.0]))
+        rng = np.random.default_rng(1)
+        pick = rng.choice(len(scan.down), min(lf.points, len(scan.down)), replace=False)
+        normals = floor.normals if floor.normals is not None else planar_normals(scan.down.xyz, max_points=YAW_NORMAL_POINTS)[1]
+        yaws = yaw_candidates(normals @ R_up.T, map_hist, step_deg=lf.yaw_step_deg)
+        z_range = None
+        if floor.source == "floor" and floor.height_m is not None:
+            # A labelled floor gives the camera's height: only a band about it is searched.
+            z_level = self.floor_height_m + floor.height_m  # heights along up are the level frame's z
+            z_range = (z_level - 2 * lf.voxel_m, z_level + 2 * lf.voxel_m)
+        poses, scores, stats = pyr.search(scan.down.xyz[pick] @ R_up.T, yaws, z_range_level=z_range,
+                                          keep_ratio=lf.keep_ratio, max_nodes=lf.max_nodes)
+        mc = self.config.match
+        hyp = pyr.hypotheses(poses, scores, R_up, count=lf.candidates, min_translation_m=mc.distinct_translation_m,
+                             min_rotation_deg=mc.distinct_rotation_deg)
+        hyp = polish(self.field, scan.score_xyz, hyp, self.up, step_m=lf.voxel_m / 2, step_deg=lf.yaw_step_deg / 2)
+        notes.append(f"label-free search: {len(yaws)} yaws, {stats.nodes} nodes, best leaf {stats.best:.2f}"
+                     + (" (node cap reached)" if stats.capped else ""))
+        return hyp if len(hyp) else None
 
     def _coarse_align(self, hyp: Hypotheses, source: small_gicp.PointCloud, scan: Scan, *,
                       origin: str = "graph") -> list[Candidate]:

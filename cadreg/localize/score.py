@@ -73,3 +73,59 @@ def score_poses(field: DistanceField, points_camera: np.ndarray, R_map_camera: n
         p = R_map_camera[s:s + chunk] @ pT + t_map_camera[s:s + chunk, :, None]  # (h, 3, m)
         out[s:s + chunk] = inlier_score(field.lookup_xyz(p[:, 0], p[:, 1], p[:, 2]), tau_m)
     return out
+
+
+class ViewCheck:
+    """Free-space check of a pose: map surfaces that the frame sees through.
+
+    At the right pose, the map's surfaces in the camera's view lie at or behind what the frame measured (behind:
+    occluded, or mapped but unseen). At a wrong pose that happens to fit a wall or a counter, much of the map lies
+    in front of the measured depth, in space the sensor saw to be empty. The share of such map points is a
+    rotation- and label-free check that the fitness alone lacks (a frame of a place the map does not hold can
+    still put half its points on some surface). Written here: no library has it in this form; numpy does the
+    projection.
+
+    map_xyz : (n, 3) map points (a sample: the cost is linear in it). cell_px : pixels per z-buffer cell.
+    """
+
+    def __init__(self, map_xyz: np.ndarray, *, sample: int = 30000, seed: int = 0) -> None:
+        xyz = np.asarray(map_xyz, dtype=np.float64)
+        if len(xyz) > sample:
+            xyz = xyz[np.random.default_rng(seed).choice(len(xyz), sample, replace=False)]
+        self.map_xyz = xyz
+
+    @staticmethod
+    def zbuffer(xyz_camera: np.ndarray, K, *, cell_px: int = 8) -> np.ndarray:
+        """(rows, cols) nearest measured depth per cell of `cell_px` pixels (inf where nothing was measured).
+        xyz_camera : (m, 3) frame points, camera frame; K : the depth camera's intrinsics (the colour camera's
+        offset of a few centimetres does not matter at this resolution)."""
+        rows, cols = int(np.ceil(K.height / cell_px)), int(np.ceil(K.width / cell_px))
+        z = xyz_camera[:, 2]
+        good = z > 1e-3
+        u = (K.fx * xyz_camera[good, 0] / z[good] + K.cx) // cell_px
+        v = (K.fy * xyz_camera[good, 1] / z[good] + K.cy) // cell_px
+        inside = (u >= 0) & (u < cols) & (v >= 0) & (v < rows)
+        zb = np.full(rows * cols, np.inf)
+        np.minimum.at(zb, (v[inside] * cols + u[inside]).astype(np.int64), z[good][inside])
+        return zb.reshape(rows, cols)
+
+    def see_through(self, T_map_camera: np.ndarray, zbuf: np.ndarray, K, *, cell_px: int = 8, margin_m: float = 0.1,
+                    margin_ratio: float = 0.04, max_depth_m: float = 4.0, min_points: int = 50) -> float:
+        """Share of the map points in view (in cells where the frame measured depth, not farther than
+        max_depth_m) that lie in front of the measured depth by more than margin_m + margin_ratio · depth."""
+        R, t = T_map_camera[:3, :3], T_map_camera[:3, 3]
+        p = (self.map_xyz - t) @ R  # map -> camera
+        z = p[:, 2]
+        near = (z > 0.2) & (z < max_depth_m)
+        p, z = p[near], z[near]
+        rows, cols = zbuf.shape
+        u = ((K.fx * p[:, 0] / z + K.cx) // cell_px).astype(np.int64)
+        v = ((K.fy * p[:, 1] / z + K.cy) // cell_px).astype(np.int64)
+        inside = (u >= 0) & (u < cols) & (v >= 0) & (v < rows)
+        measured = zbuf[v[inside], u[inside]]
+        zi = z[inside]
+        seen = np.isfinite(measured)
+        if seen.sum() < min_points:
+            return 0.0
+        front = zi[seen] < measured[seen] - (margin_m + margin_ratio * measured[seen])
+        return float(front.mean())

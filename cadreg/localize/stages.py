@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..result import Hypothesis
+from ..result import Hypothesis, Status
 from .cluster import ScanCluster
 from .gravity import Floor
 from .points import FramePoints
@@ -40,6 +40,8 @@ class Scan:
     fit_xyz, fit_rgb, fit_cls : a sample of `down` (≤ fit_points): positions, colours in [0, 1], class index, for
         the label and colour agreement that ranks coarse-aligned candidates.
     check_xyz : (≤ check_points, 3) float64 sample of `points` for the final fitness.
+    zbuf : coarse z-buffer of `points` (`score.ViewCheck.zbuffer`) for the free-space check; K : the depth
+        intrinsics it was projected with. None for scans built without a frame.
     """
 
     points: FramePoints
@@ -52,6 +54,8 @@ class Scan:
     fit_rgb: np.ndarray
     fit_cls: np.ndarray
     check_xyz: np.ndarray
+    zbuf: np.ndarray | None = None
+    K: object | None = None
 
 
 @dataclass
@@ -92,6 +96,7 @@ class Choice:
     rmse_m: float
     center_camera: np.ndarray
     roi_frame_points: int
+    see_through: float = 0.0
 
 
 class StageTimer:
@@ -113,18 +118,37 @@ class StageTimer:
             self.progress(PROGRESS_STAGES.index(name) + 1, len(PROGRESS_STAGES))
 
 
-def confidence(fitness: float, rmse_m: float, margin: float, *, inlier_m: float, confident_margin: float) -> float:
+def confidence(fitness: float, rmse_m: float, margin: float, *, inlier_m: float, confident_margin: float,
+               see_through: float = 0.0, max_see_through: float = 1.0) -> float:
     """How much to trust a refined pose, in [0, 1]:
 
-        fitness · exp(−(rmse_m / inlier_m)²) · min(1, ½ + ½ · margin / confident_margin)
+        fitness · exp(−(rmse_m / inlier_m)²) · min(1, ½ + ½ · margin / confident_margin) · max(0, 1 − s / s_max)
 
-    how much of the frame lies on the map, how tightly, and how clearly the best beat its distinct rival (a tie
-    halves the confidence, a margin of `confident_margin` or more leaves it whole).
+    how much of the frame lies on the map, how tightly, how clearly the best beat its distinct rival (a tie
+    halves the confidence, a margin of `confident_margin` or more leaves it whole), and how little of the map in
+    view the frame sees through (s = `see_through`, s_max = `max_see_through`).
     """
     value = fitness * np.exp(-(rmse_m / inlier_m) ** 2) * min(1.0, 0.5 + 0.5 * margin / confident_margin)
+    value *= max(0.0, 1.0 - see_through / max_see_through)
     return float(np.clip(value, 0.0, 1.0))
 
 
 def low_overlap_confidence(fitness: float) -> float:
     """Confidence of a pose too little of the frame supports: half its fitness, always below an `ok` answer's."""
     return float(fitness) * 0.5
+
+
+def answer_status(fitness: float, margin: float, has_rival: bool, see_through: float, trust: float, *,
+                  min_fitness: float, ambiguity_margin: float, max_see_through: float,
+                  min_ok_confidence: float) -> Status:
+    """The status of a refined pose: `low_overlap` when too little of the frame lies on the map, `ambiguous` when
+    a distinct rival scored within the ambiguity margin, `uncertain` when its support is weak (the frame sees
+    through more than max_see_through of the map in view, or the confidence is below min_ok_confidence), else
+    `ok`. Only `ok` claims the pose is right."""
+    if fitness < min_fitness:
+        return Status.LOW_OVERLAP
+    if has_rival and margin < ambiguity_margin:
+        return Status.AMBIGUOUS
+    if see_through > max_see_through or trust < min_ok_confidence:
+        return Status.UNCERTAIN
+    return Status.OK

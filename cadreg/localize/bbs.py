@@ -1,0 +1,300 @@
+"""Label-free global search: branch-and-bound over (x, y, z, yaw) once the frame's up direction is known.
+
+In the style of Cartographer's fast correlative scan matcher (Hess et al. 2016) and 3D-BBS (Aoki et al. 2024): a
+score grid over the map (how close each cell is to a map surface) and a pyramid of max-pooled copies of it are
+built once per site. A node of the search is a yaw and a cube of 2^h × 2^h × 2^h camera positions; the sum of the
+level-h grid at the node's corner plus each frame point is an upper bound of the score of every position in the
+cube, so whole cubes are dropped when their bound cannot reach the best leaf found. Nodes are expanded in batches
+(numpy gathers of nodes × points), best first with a greedy dive for the first bound, and the number of nodes kept
+per level is capped so that the cost of a frame is bounded by its inputs, not by its luck.
+
+Written here because no library does it: 3D-BBS is a C++/CUDA ROS package without Python bindings, and
+Cartographer's matcher is 2-D and part of the Cartographer C++ tree.
+
+Frames: `level` is the map rotated so that the map's up is +z (`R_level_map`); yaw is about +z there.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry import rotation_between
+from .match import Hypotheses, distinct_best
+from .score import DistanceField
+
+# The score grid is stored as uint8 (0..SCALE): a quarter of float32's memory, and sums of a few hundred points
+# stay exact in int32.
+SCALE = 255
+# Nodes are evaluated in chunks of this many, so that a batch's (nodes × points) gather stays a few MB.
+CHUNK = 2048
+
+
+@dataclass
+class SearchStats:
+    """What one search did: nodes whose bound was computed, leaves scored, whether a level's node cap cut the
+    search (then the result may miss the best leaf), and the best leaf score in [0, 1]."""
+
+    nodes: int = 0
+    leaves: int = 0
+    capped: bool = False
+    best: float = 0.0
+
+
+class GridPyramid:
+    """Max-pooled score grids over one site's map, in the level frame.
+
+    field : the site's distance field (map frame). up : (3,) the map's unit up vector. voxel_m : cell size of the
+    finest level (the leaves' translation step). levels : pyramid levels above the finest (a root covers
+    2^levels cells a side). tau_m : a cell whose centre is d from the map scores max(0, 1 − (d / tau)²).
+    reach_m : frame points farther than this from the camera are not used (the grid is padded by it).
+    margin_m : the camera may stand this far outside the box of the map (a view from the doorway of a room whose
+    map holds only what is ahead of it).
+    max_cells : cap on the cells of one level; the voxel grows until it fits (memory is (levels + 1) bytes a cell).
+    """
+
+    def __init__(self, field: DistanceField, map_xyz: np.ndarray, up: np.ndarray, *, voxel_m: float = 0.1,
+                 levels: int = 4, tau_m: float = 0.15, reach_m: float = 4.0, margin_m: float = 1.0,
+                 max_cells: int = 8_000_000) -> None:
+        self.R_level_map = rotation_between(np.asarray(up, float), np.array([0.0, 0.0, 1.0]))
+        p = np.asarray(map_xyz, dtype=np.float64) @ self.R_level_map.T
+        lo, hi = p.min(axis=0), p.max(axis=0)
+        self.levels = int(levels)
+        span = 2 ** self.levels
+        while True:
+            self.margin = int(np.ceil(margin_m / voxel_m))
+            self.pad = int(np.ceil(reach_m / voxel_m)) + 1 + self.margin
+            inner = np.ceil((hi - lo) / voxel_m).astype(np.int64) + 1
+            dims = inner + 2 * self.pad + span
+            if np.prod(dims) <= max_cells:
+                break
+            voxel_m *= 1.25
+        self.voxel_m = float(voxel_m)
+        self.reach_m = float(reach_m)
+        self.dims = dims
+        self.inner = inner  # map cells: the camera's (x, y) stays over the map
+        self.origin = lo - self.pad * voxel_m  # level frame position of cell (0, 0, 0)'s corner
+        self.map_lo_level, self.map_hi_level = lo, hi
+        self.strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
+        # Finest level: the score at each cell centre, from the exact distance field (looked up in the map frame).
+        idx = np.indices(tuple(dims)).reshape(3, -1).T
+        centres = self.origin + (idx + 0.5) * voxel_m
+        d = field.lookup(centres @ self.R_level_map)  # rows: R_level_mapᵀ · c, back in the map frame
+        s = np.clip(1.0 - (d / tau_m) ** 2, 0.0, 1.0)
+        base = np.rint(s * SCALE).astype(np.uint8).reshape(tuple(dims))
+        self.grids = [base.ravel()]
+        g = base
+        for h in range(1, self.levels + 1):
+            # Level h at cell i is the max of level h−1 at i and i + 2^(h−1) along each axis: the max over the
+            # 2^h cube whose lower corner is i (cells past the grid's end read 0).
+            step = 2 ** (h - 1)
+            g = g.copy()
+            for axis in range(3):
+                sl_dst = [slice(None)] * 3
+                sl_src = [slice(None)] * 3
+                sl_dst[axis] = slice(0, dims[axis] - step)
+                sl_src[axis] = slice(step, None)
+                np.maximum(g[tuple(sl_dst)], g[tuple(sl_src)], out=g[tuple(sl_dst)])
+            self.grids.append(g.ravel())
+        self.nbytes = sum(x.nbytes for x in self.grids)
+
+    # ------------------------------------------------------------------------------------------------------------
+    def camera_domain(self, z_range_level: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) inclusive cell indices of camera positions searched: the map's box grown by margin_m (a
+        camera is not far from everything it sees); in z `z_range_level` when given."""
+        lo = np.full(3, self.pad - self.margin)
+        hi = np.full(3, self.pad) + self.inner - 1 + self.margin
+        if z_range_level is not None:
+            zl, zh = (np.floor((np.asarray(z_range_level) - self.origin[2]) / self.voxel_m)).astype(np.int64)
+            z_lo, z_hi = lo[2], hi[2]
+            lo[2], hi[2] = max(z_lo, zl), min(z_hi, zh)
+            if hi[2] < lo[2]:
+                lo[2] = hi[2] = int(np.clip((zl + zh) // 2, z_lo, z_hi))
+        return lo, hi
+
+    def search(self, points_level: np.ndarray, yaws_rad: np.ndarray, *, z_range_level: tuple[float, float] | None = None,
+               keep_ratio: float = 0.85, max_nodes: int = 1500, dives: int = 4) -> tuple[np.ndarray, np.ndarray, SearchStats]:
+        """Best leaves of the search.
+
+        points_level : (m, 3) frame points rotated so that the camera's up is +z (camera at the origin).
+        yaws_rad : (k,) yaws searched. Leaves scoring at least keep_ratio × the best are returned:
+        (poses (l, 4): yaw, x, y, z of the camera in the level frame; scores (l,) in [0, 1]), best first.
+        max_nodes : nodes kept per level (the highest bounds); the cap bounds the cost of any frame.
+        """
+        stats = SearchStats()
+        pts = np.asarray(points_level, dtype=np.float64)
+        pts = pts[np.linalg.norm(pts, axis=1) < self.reach_m - self.voxel_m]
+        if len(pts) == 0 or len(yaws_rad) == 0:
+            return np.zeros((0, 4)), np.zeros(0), stats
+        n = len(pts)
+        c, s = np.cos(yaws_rad), np.sin(yaws_rad)
+        x = c[:, None] * pts[None, :, 0] - s[:, None] * pts[None, :, 1]
+        y = s[:, None] * pts[None, :, 0] + c[:, None] * pts[None, :, 1]
+        z = np.broadcast_to(pts[None, :, 2], x.shape)
+        v = self.voxel_m
+        offs = (np.floor(x / v).astype(np.int64) * self.strides[0] + np.floor(y / v).astype(np.int64) * self.strides[1]
+                + np.floor(z / v).astype(np.int64) * self.strides[2])  # (k, n)
+        lo, hi = self.camera_domain(z_range_level)
+        H = self.levels
+        span = 2 ** H
+        axes = [np.arange(lo[a], hi[a] + 1, span) for a in range(3)]
+        gi, gj, gk = np.meshgrid(*axes, indexing="ij")
+        corner = np.stack([gi.ravel(), gj.ravel(), gk.ravel()], axis=1)
+        yi = np.repeat(np.arange(len(yaws_rad)), len(corner))
+        corner = np.tile(corner, (len(yaws_rad), 1))
+
+        def bound(level: int, yaw: np.ndarray, cell: np.ndarray) -> np.ndarray:
+            flat = cell @ self.strides
+            out = np.empty(len(yaw), dtype=np.int64)
+            g = self.grids[level]
+            for a in range(0, len(yaw), CHUNK):
+                out[a:a + CHUNK] = g[offs[yaw[a:a + CHUNK]] + flat[a:a + CHUNK, None]].sum(axis=1, dtype=np.int64)
+            stats.nodes += len(yaw)
+            return out
+
+        def children(level: int, yaw: np.ndarray, cell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            step = 2 ** (level - 1)
+            delta = np.array([[i, j, k] for i in (0, step) for j in (0, step) for k in (0, step)])
+            cc = (cell[:, None, :] + delta[None]).reshape(-1, 3)
+            yy = np.repeat(yaw, len(delta))
+            inside = np.all(cc <= hi, axis=1)
+            return yy[inside], cc[inside]
+
+        b = bound(H, yi, corner)
+        # A first bound to prune with: greedy dives from the best roots to a leaf.
+        best = 0
+        order = np.argsort(-b)[:dives]
+        dy, dc = yi[order], corner[order]
+        for level in range(H, 0, -1):
+            cy, cc = children(level, dy, dc)
+            if len(cy) == 0:
+                break
+            cb = bound(level - 1, cy, cc)
+            # The best child of each dive (children of one parent are consecutive, 8 or fewer).
+            picks = []
+            for parent_yaw, parent_cell in zip(dy, dc):
+                m = np.flatnonzero((cy == parent_yaw) & np.all((cc >= parent_cell) & (cc < parent_cell + 2 ** level), axis=1))
+                if len(m):
+                    picks.append(m[np.argmax(cb[m])])
+            picks = np.array(picks, dtype=np.int64)
+            dy, dc = cy[picks], cc[picks]
+            if level == 1:
+                best = int(cb[picks].max())
+        for level in range(H, 0, -1):
+            keep = np.flatnonzero(b >= keep_ratio * best)
+            if len(keep) > max_nodes:
+                stats.capped = True
+                keep = keep[np.argsort(-b[keep])[:max_nodes]]
+            yi, corner = children(level, yi[keep], corner[keep])
+            b = bound(level - 1, yi, corner)
+            if level == 1 and len(b):
+                best = max(best, int(b.max()))
+        keep = np.flatnonzero(b >= keep_ratio * best)
+        keep = keep[np.argsort(-b[keep])]
+        stats.leaves = len(b)
+        stats.best = best / (SCALE * n)
+        pos = self.origin + corner[keep] * v
+        poses = np.column_stack([yaws_rad[yi[keep]], pos])
+        return poses, b[keep] / (SCALE * n), stats
+
+    def hypotheses(self, poses: np.ndarray, scores: np.ndarray, R_up_camera: np.ndarray, *, count: int,
+                   min_translation_m: float, min_rotation_deg: float, consider: int = 3000) -> Hypotheses:
+        """Distinct best leaves as map-frame hypotheses T_map_camera (R, t); `geometric` holds the leaf scores.
+
+        R_up_camera : (3, 3) rotation taking the camera's up to +z (the frame's levelling)."""
+        poses, scores = poses[:consider], scores[:consider]
+        if len(poses) == 0:
+            return Hypotheses.empty()
+        c, s = np.cos(poses[:, 0]), np.sin(poses[:, 0])
+        Rz = np.zeros((len(poses), 3, 3))
+        Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
+        R = self.R_level_map.T @ Rz @ R_up_camera
+        t = poses[:, 1:] @ self.R_level_map
+        keep = np.array(distinct_best(R, t, np.arange(len(R)), count=count, min_translation_m=min_translation_m,
+                                      min_rotation_deg=min_rotation_deg), dtype=np.int64)
+        hyp = Hypotheses(R[keep], t[keep], np.full((len(keep), 2), -1, dtype=np.int64))
+        hyp.geometric = scores[keep]
+        return hyp
+
+
+def yaw_candidates(frame_normals_level: np.ndarray, map_hist: np.ndarray | None, *, step_deg: float,
+                   min_normals: int = 40, keep_ratio: float = 0.5, spread_deg: float = 6.0) -> np.ndarray:
+    """Yaws (radians) worth searching, from the directions of the frame's vertical surfaces.
+
+    Walls, cupboard fronts and furniture sides of the frame face the directions the map's do, turned by the
+    camera's yaw: the circular correlation of the two histograms of horizontal normal directions (axial, mod
+    180°: normals of a depth frame and of a map may be flipped) peaks at the right yaw (and, in a box-shaped room,
+    every 90°). Yaws near the peaks at least keep_ratio of the highest are kept, both ways round; all yaws when the
+    frame shows too few vertical surfaces to say.
+    """
+    all_yaws = np.radians(np.arange(0.0, 360.0, step_deg))
+    if map_hist is None:
+        return all_yaws
+    n = frame_normals_level
+    horizontal = n[np.abs(n[:, 2]) < 0.3]
+    if len(horizontal) < min_normals:
+        return all_yaws
+    fh = axial_histogram(horizontal)
+    bins = len(map_hist)
+    # corr[s] = Σ_b fh[b] · map_hist[b + s]: the frame's direction b lies at b + s in the map after a yaw of s bins.
+    corr = np.real(np.fft.ifft(np.conj(np.fft.fft(fh)) * np.fft.fft(map_hist)))
+    good = np.flatnonzero(corr >= keep_ratio * corr.max())
+    centres = np.concatenate([good, good + bins]) * (180.0 / bins)  # mod 180 -> both ways round
+    yaw_deg = np.degrees(all_yaws)
+    diff = np.abs((yaw_deg[:, None] - centres[None, :] + 180.0) % 360.0 - 180.0)
+    return all_yaws[diff.min(axis=1) <= spread_deg / 2 + step_deg / 2]
+
+
+def axial_histogram(normals_level: np.ndarray, *, bins: int = 90, smooth_bins: float = 1.5) -> np.ndarray:
+    """Normalized histogram of horizontal normal directions mod 180° (bins of 180/bins degrees), smoothed
+    circularly: the noise of a depth frame's normals is a few degrees."""
+    a = np.degrees(np.arctan2(normals_level[:, 1], normals_level[:, 0])) % 180.0
+    h = np.bincount(np.minimum((a / (180.0 / bins)).astype(np.int64), bins - 1), minlength=bins).astype(np.float64)
+    k = np.arange(bins)
+    d = np.minimum(k, bins - k)
+    kernel = np.exp(-0.5 * (d / smooth_bins) ** 2)
+    h = np.real(np.fft.ifft(np.fft.fft(h) * np.fft.fft(kernel)))
+    return h / max(h.sum(), 1e-12)
+
+
+def map_direction_histogram(normals_level: np.ndarray, *, sample: int = 50000, seed: int = 0) -> np.ndarray | None:
+    """The map's `axial_histogram` of its vertical surfaces (None when it has none to speak of)."""
+    n = np.asarray(normals_level, dtype=np.float64)
+    n = n[np.linalg.norm(n, axis=1) > 0.5]
+    if len(n) > sample:
+        n = n[np.random.default_rng(seed).choice(len(n), sample, replace=False)]
+    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+    horizontal = n[np.abs(n[:, 2]) < 0.3]
+    if len(horizontal) < 100:
+        return None
+    return axial_histogram(horizontal)
+
+
+def polish(field: DistanceField, points_camera: np.ndarray, hyp: Hypotheses, up: np.ndarray, *, step_m: float = 0.05,
+           step_deg: float = 1.5, rounds: int = 2, tau_m: float = 0.1) -> Hypotheses:
+    """Each hypothesis moved to the best of its neighbours on the exact distance field: yaw ± step_deg and each
+    translation axis ± step_m (81 poses), the steps halved each round. The search's leaves are cell corners and
+    yaw steps apart; this brings them within a few centimetres and a degree at the cost of a few hundred lookups."""
+    from .match import yaw_rotations
+    from .score import score_poses
+
+    if len(hyp) == 0:
+        return hyp
+    R, t = hyp.R.copy(), hyp.t.copy()
+    grid = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], dtype=np.float64)
+    best = score_poses(field, points_camera, R, t, tau_m=tau_m)
+    for _ in range(rounds):
+        dR = yaw_rotations(up, np.radians(np.array([-step_deg, 0.0, step_deg])))  # (3, 3, 3)
+        for h in range(len(R)):
+            Rc = np.einsum("yij,jk->yik", dR, R[h])  # about the map's up, through the camera
+            Rs = np.repeat(Rc, len(grid), axis=0)
+            ts = np.tile(t[h] + grid * step_m, (len(dR), 1))
+            s = score_poses(field, points_camera, Rs, ts, tau_m=tau_m)
+            k = int(np.argmax(s))
+            if s[k] > best[h]:
+                R[h], t[h], best[h] = Rs[k], ts[k], s[k]
+        step_m, step_deg = step_m / 2, step_deg / 2
+    out = Hypotheses(R, t, hyp.seed)
+    out.geometric = best
+    return out

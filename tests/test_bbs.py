@@ -1,0 +1,121 @@
+"""The label-free search (cadreg/localize/bbs.py): its bounds really bound, and it finds real 7-Scenes frames in a
+map fused from other frames of the sequence, before any refinement."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+
+from cadreg.geometry import pose_errors, rotation_between
+from cadreg.localize.bbs import SCALE, GridPyramid, axial_histogram, polish, yaw_candidates
+from cadreg.localize.score import DistanceField
+
+
+@functools.lru_cache(maxsize=1)
+def sparse_redkitchen_site():
+    """A site fused from every 5th 7-Scenes RedKitchen frame of 0-199 at 2 cm (once per session, also used by
+    test_label_free.py); queries are frames between those."""
+    from conftest import REDKITCHEN
+
+    from cadreg.config import FuseConfig
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.site.fuse import fuse_site
+
+    return fuse_site(RecordedFrames.open(REDKITCHEN), range(0, 200, 5), site_id="redkitchen-sparse",
+                     config=FuseConfig(voxel_size_m=0.02)), REDKITCHEN
+
+
+@pytest.fixture()
+def redkitchen_sparse_site(redkitchen_dir):
+    return sparse_redkitchen_site()
+
+
+def _room(rng: np.random.Generator) -> np.ndarray:
+    """Points on the floor, two walls and a box of a 4 x 3 x 2.5 m room (z up)."""
+    n = 3000
+    floor = np.column_stack([rng.uniform(0, 4, n), rng.uniform(0, 3, n), np.zeros(n)])
+    wall_a = np.column_stack([np.zeros(n), rng.uniform(0, 3, n), rng.uniform(0, 2.5, n)])
+    wall_b = np.column_stack([rng.uniform(0, 4, n), np.full(n, 3.0), rng.uniform(0, 2.5, n)])
+    box = np.column_stack([rng.uniform(2.5, 3.2, n), rng.uniform(0.5, 1.0, n), rng.uniform(0, 0.8, n)])
+    return np.vstack([floor, wall_a, wall_b, box])
+
+
+def test_every_level_bounds_the_leaves_below_it() -> None:
+    rng = np.random.default_rng(0)
+    room = _room(rng)
+    pyr = GridPyramid(DistanceField(room, voxel_m=0.05), room, np.array([0.0, 0.0, 1.0]), voxel_m=0.1, levels=3,
+                      reach_m=2.0)
+    pts = rng.normal(size=(60, 3)) * 0.6
+    offs = (np.floor(pts / pyr.voxel_m).astype(np.int64) @ pyr.strides)
+    lo, hi = pyr.camera_domain()
+    for _ in range(40):
+        h = int(rng.integers(1, pyr.levels + 1))
+        corner = np.array([rng.integers(lo[a], hi[a] + 1) for a in range(3)])
+        bound = pyr.grids[h][offs + corner @ pyr.strides].sum()
+        span = 2 ** h
+        leaves = [pyr.grids[0][offs + (corner + [i, j, k]) @ pyr.strides].sum()
+                  for i in range(span) for j in range(span) for k in range(span)]
+        assert bound >= max(leaves)
+    assert pyr.grids[0].max() == SCALE and pyr.grids[0].dtype == np.uint8
+
+
+def test_search_recovers_a_synthetic_pose() -> None:
+    rng = np.random.default_rng(1)
+    room = _room(rng)
+    pyr = GridPyramid(DistanceField(room, voxel_m=0.05), room, np.array([0.0, 0.0, 1.0]), voxel_m=0.1, levels=4)
+    yaw, cam = np.radians(30.0), np.array([2.0, 1.0, 1.4])
+    Rz = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    seen = room[np.linalg.norm(room - cam, axis=1) < 3.0]
+    local = (seen[rng.choice(len(seen), 200, replace=False)] - cam) @ Rz  # camera-level frame, camera at 0
+    poses, scores, stats = pyr.search(local, np.radians(np.arange(0, 360, 3.0)), max_nodes=4000)
+    assert stats.best > 0.8 and scores[0] == pytest.approx(stats.best)
+    assert abs(np.degrees(poses[0, 0]) - 30.0) < 3.1 and np.linalg.norm(poses[0, 1:] - cam) < 0.15
+
+
+def test_yaw_candidates_contain_the_true_yaw_of_a_manhattan_view() -> None:
+    rng = np.random.default_rng(2)
+    map_normals = np.vstack([np.tile([1.0, 0, 0], (400, 1)), np.tile([0, 1.0, 0], (200, 1))])
+    map_normals = np.vstack([map_normals, np.tile([0, 0, 1.0], (600, 1))]) + rng.normal(0, 0.02, (1200, 3))
+    hist = axial_histogram(map_normals[np.abs(map_normals[:, 2]) < 0.3])
+    yaw = np.radians(47.0)
+    R = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    frame = map_normals[:300] @ R  # the map's directions seen by a camera turned by `yaw`: R.T @ n
+    yaws = np.degrees(yaw_candidates(frame, hist, step_deg=3.0))
+    assert len(yaws) < 60 and np.min(np.abs((yaws - 47.0 + 180) % 360 - 180)) <= 3.0
+    # Too few vertical surfaces to say: every yaw.
+    assert len(yaw_candidates(frame[:10], hist, step_deg=3.0)) == 120
+
+
+@pytest.mark.realdata
+def test_search_finds_real_7scenes_frames_before_refinement(redkitchen_sparse_site) -> None:
+    from dataclasses import replace
+
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.localize.gravity import planar_normals
+    from cadreg.localize.localizer import Localizer
+    from cadreg.result import Diagnostics
+    from cadreg.localize.stages import StageTimer
+
+    site, frames_dir = redkitchen_sparse_site
+    loc = Localizer.from_site(site)
+    pyr, hist = loc.pyramid()
+    frames = RecordedFrames.open(frames_dir)
+    found = 0
+    queries = (22, 72, 122, 172)  # not fused (the map has every 5th of 0-199)
+    for i in queries:
+        frame, T_true = frames.load(i)
+        diag = Diagnostics()
+        scan = loc._scan(replace(frame, labels=None), diag, StageTimer(diag.stage_ms))
+        R_up = rotation_between(scan.floor.up_camera, np.array([0.0, 0.0, 1.0]))
+        pick = np.random.default_rng(0).choice(len(scan.down), 160, replace=False)
+        yaws = yaw_candidates(planar_normals(scan.down.xyz, max_points=1000)[1] @ R_up.T, hist, step_deg=3.0)
+        poses, scores, _ = pyr.search(scan.down.xyz[pick] @ R_up.T, yaws)
+        hyp = pyr.hypotheses(poses, scores, R_up, count=5, min_translation_m=0.3, min_rotation_deg=15.0)
+        hyp = polish(loc.field, scan.score_xyz, hyp, loc.up)
+        errors = [pose_errors(hyp.T(k), T_true) for k in range(len(hyp))]
+        # The true pose is among the distinct best, within the coarse GICP's reach; most often the first.
+        assert any(te <= 0.15 and re <= 5.0 for te, re in errors), (i, errors)
+        found += errors[0][0] <= 0.10 and errors[0][1] <= 5.0
+    assert found >= len(queries) - 1

@@ -1,0 +1,101 @@
+"""Label-free frames on real 7-Scenes RedKitchen data: up from the frame's surfaces, the whole localizer without
+labels, the free-space check, and the statuses that keep a weakly supported answer from being `ok`."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from cadreg.config import LocalizeConfig
+from cadreg.geometry import pose_errors
+from cadreg.localize.stages import answer_status, confidence
+from cadreg.result import Status
+from test_bbs import sparse_redkitchen_site
+
+MC, RC = LocalizeConfig().match, LocalizeConfig().refine
+
+
+def _status(fitness=0.9, margin=0.2, has_rival=True, see_through=0.0, trust=0.8) -> Status:
+    return answer_status(fitness, margin, has_rival, see_through, trust, min_fitness=RC.min_fitness,
+                         ambiguity_margin=MC.ambiguity_margin, max_see_through=MC.max_see_through,
+                         min_ok_confidence=MC.min_ok_confidence)
+
+
+def test_only_a_well_supported_clear_winner_is_ok() -> None:
+    assert _status() == Status.OK
+    assert _status(has_rival=True, margin=0.01) == Status.AMBIGUOUS  # a close rival
+    assert _status(see_through=0.3) == Status.UNCERTAIN  # the frame sees through the map there
+    assert _status(trust=0.3) == Status.UNCERTAIN  # weak support
+    assert _status(fitness=0.3) == Status.LOW_OVERLAP
+    # Confidence falls with what the frame sees through, to 0 at max_see_through.
+    c = [confidence(0.9, 0.015, 0.2, inlier_m=RC.inlier_m, confident_margin=MC.confident_margin, see_through=s,
+                    max_see_through=MC.max_see_through) for s in (0.0, 0.05, 0.1)]
+    assert c[0] > c[1] > c[2] == 0.0
+
+
+@pytest.fixture(scope="module")
+def kitchen(redkitchen_dir):
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.localize.localizer import Localizer
+
+    site, frames_dir = sparse_redkitchen_site()
+    return Localizer.from_site(site).warm(), RecordedFrames.open(frames_dir)
+
+
+@pytest.mark.realdata
+def test_up_from_the_surfaces_of_real_frames(redkitchen_dir, kitchen) -> None:
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.localize.gravity import estimate_floor
+    from cadreg.localize.points import frame_to_points, voxel_downsample
+
+    frames = RecordedFrames.open(redkitchen_dir)
+    # 7-Scenes' world frame is its first camera's; its up is the fused map's (from the map's own surfaces).
+    up_world = kitchen[0].up
+    errors = []
+    for i in range(3, 500, 25):
+        frame, T = frames.load(i)
+        down = voxel_downsample(frame_to_points(frame), 0.03)
+        floor = estimate_floor(down.xyz, down.labels, "nyu40")
+        errors.append(np.degrees(np.arccos(np.clip(floor.up_camera @ (T[:3, :3].T @ up_world), -1, 1))))
+    errors = np.array(errors)
+    assert np.median(errors) < 2.0 and np.mean(errors <= 3.0) >= 0.85 and errors.max() < 6.0, np.round(errors, 1)
+
+
+@pytest.mark.realdata
+def test_label_free_frames_are_placed_and_claimed(kitchen) -> None:
+    loc, frames = kitchen
+    for i in (47, 147):
+        frame, T_true = frames.load(i)
+        r = loc.localize(replace(frame, labels=None))
+        assert r.status == Status.OK, r.diagnostics.notes
+        te, re_ = pose_errors(r.T_map_camera, T_true)
+        assert te <= 0.05 and re_ <= 5.0
+        assert r.diagnostics.method == "fallback:bbs" and r.confidence >= MC.min_ok_confidence
+
+
+@pytest.mark.realdata
+def test_a_frame_of_a_place_the_map_lacks_is_not_ok(kitchen) -> None:
+    loc, frames = kitchen
+    frame, T_true = frames.load(400)  # sees a part of the kitchen that frames 0-199 did not
+    r = loc.localize(replace(frame, labels=None))
+    assert r.status != Status.OK and r.T_map_camera is None or r.status == Status.AMBIGUOUS
+    assert r.hypotheses  # the best guess is still reported
+    if r.status == Status.UNCERTAIN:
+        assert any("uncertain" in n for n in r.diagnostics.notes)
+
+
+@pytest.mark.realdata
+def test_free_space_check_tells_the_true_pose_from_a_shifted_one(kitchen) -> None:
+    from cadreg.localize.points import frame_to_points, voxel_downsample
+    from cadreg.localize.score import ViewCheck
+
+    loc, frames = kitchen
+    frame, T_true = frames.load(97)
+    down = voxel_downsample(frame_to_points(frame), 0.03)
+    zbuf = ViewCheck.zbuffer(down.xyz, frame.depth_intrinsics)
+    at_truth = loc.view_check.see_through(T_true, zbuf, frame.depth_intrinsics)
+    ahead = T_true.copy()
+    ahead[:3, 3] += 0.4 * T_true[:3, 2]  # 40 cm ahead: the map now stands in front of what the frame measured
+    assert at_truth < 0.05 and loc.view_check.see_through(ahead, zbuf, frame.depth_intrinsics) > 0.3
