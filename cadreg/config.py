@@ -240,9 +240,9 @@ class TrackConfig(_Section):
     max_hypotheses: int = Field(4, ge=1, le=16, description="distinct hypotheses a session keeps tracking after an "
                                 "ambiguous answer (each costs one tracking refinement per frame)")
     hypothesis_margin: float = Field(0.1, ge=0, le=1, description="an ambiguous answer's hypotheses within this score "
-                                     "of its best are tracked; tracked ones this far below the best are pruned")
-    clear_margin: float = Field(0.05, ge=0, le=1, description="with several hypotheses left, the best answers 'ok' "
-                                "only when its fitness beats every other's by this much")
+                                     "of its best are tracked")
+    clear_margin: float = Field(0.05, ge=0, le=1, description="a tracked hypothesis whose fitness falls this far "
+                                "behind the best's is pruned; the session answers 'ok' once one is left")
 
 
 class LocalizeConfig(_Section):

@@ -181,7 +181,7 @@ def track_frame(localizer: "Localizer", frame: Frame, state: TrackState | None, 
     accepted = [o for o in outcomes if o.accepted]
     if not accepted:
         best = max(outcomes, key=lambda o: o.fitness)
-        why = (f"tracking failed: fitness {best.fitness:.2f} (min {cfg.min_fitness:g}), correction "
+        why = (f"tracking failed: fitness {best.fitness:.2f} (min {cfg.coast_fitness:g}), correction "
                f"{best.correction_m * 100:.1f} cm / {best.correction_deg:.1f}° (max {cfg.max_correction_m * 100:g} cm / "
                f"{cfg.max_correction_deg:g}°)")
         tracked = _global(localizer, frame, state, predictions[0], t_s, top_k, "relocalized", [why])
