@@ -112,6 +112,8 @@ def test_scan2cad_round_trip_gives_the_same_cad_nodes(auto_site, scene0470_dir: 
         np.testing.assert_allclose(x.box_extent, y.box_extent, atol=1e-6)
         np.testing.assert_allclose(x.box_center, y.box_center, atol=1e-6)
     assert [n.cls for n in site.graph.nodes] == [n.cls for n in again.graph.nodes]
+    # the file stores the very TRS each CAD was placed with: the same bundle, bit for bit
+    assert again.version == site.version
 
 
 def test_annotated_objects_kept_the_rest_auto_aligned(scene0470_dir: Path, tmp_path: Path) -> None:

@@ -50,7 +50,14 @@ class TRS:
         R = L / np.where(scale > 0, scale, 1.0)
         if np.any(scale <= 0) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0:
             raise InvalidArgument("affine is not translation · rotation · positive scale")
-        return cls(A[:3, 3].copy(), R_to_quat_wxyz(R), scale)
+        q = R_to_quat_wxyz(R)
+        # Normalised to a fixed point of the reader's own q / |q|, so a written TRS reads back bit for bit
+        for _ in range(8):
+            q_next = q / np.linalg.norm(q)
+            if np.array_equal(q_next, q):
+                break
+            q = q_next
+        return cls(A[:3, 3].copy(), q, scale)
 
     def to_json(self) -> dict[str, list[float]]:
         return {"translation": [float(x) for x in self.translation],

@@ -524,16 +524,15 @@ def align_instances(jobs: list[AlignJob], workers: int) -> list[InstanceResult]:
 # --- Scan2CAD output --------------------------------------------------------------------------------------------
 
 
-def aligned_model_record(cad_id: str, A_map_cad: np.ndarray, lo: np.ndarray, hi: np.ndarray, sym: str | None,
+def aligned_model_record(cad_id: str, trs, lo: np.ndarray, hi: np.ndarray, sym: str | None,
                          **extra: Any) -> dict[str, Any]:
-    """One `aligned_models` entry of a Scan2CAD record for an affine CAD -> map (scan trs = identity).
+    """One `aligned_models` entry of a Scan2CAD record: `trs` (cadreg.io.scan2cad.TRS) takes the CAD into the map
+    frame (the record's scan trs is the identity).
 
     `bbox` are the half extents of the CAD's box and `center` its centre, in the CAD frame, as in Scan2CAD.
     """
-    from ..io.scan2cad import TRS
-
     synset, model_id = cad_id.split("/", 1)
-    return {"catid_cad": synset, "id_cad": model_id, "trs": TRS.from_affine(A_map_cad).to_json(),
+    return {"catid_cad": synset, "id_cad": model_id, "trs": trs.to_json(),
             "bbox": [float(x) for x in (hi - lo) / 2.0], "center": [float(x) for x in (hi + lo) / 2.0],
             "sym": sym or SYM_NONE, **extra}
 

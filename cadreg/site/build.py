@@ -27,7 +27,7 @@ from ..errors import InvalidArgument
 from ..io.bundle_files import sha256_file
 from ..io.cad import cad_model_path, load_cad_mesh
 from ..io.ply import read_scan
-from ..io.scan2cad import read_scan2cad, select_scan
+from ..io.scan2cad import TRS, read_scan2cad, select_scan
 from ..labels import GRAPH_CLASSES, NYU40, STRUCTURE_CLASSES, default_label_maps, labels_to_class_index, synset_class
 from ..pointset import SOURCE_RAW, PointSet
 from .bundle import Site
@@ -213,8 +213,11 @@ def auto_cad_placements(
                          f"{best.fit.to_dict()}): it stays a cluster node")
             continue
         m = library.model(r.accepted.cad_id)
-        placements.append(CadPlacement(m.mesh, r.accepted.A_map_cad, m.cls, m.cad_id, origin="auto",
-                                       fit=r.accepted.fit.to_dict(), sym=r.accepted.sym))
+        # Placed through the TRS the Scan2CAD file stores, so that rebuilding from that file (--scan2cad) uses the
+        # very same matrix: the same bundle, not one that differs in the last bit of a float.
+        trs = TRS.from_affine(r.accepted.A_map_cad)
+        placements.append(CadPlacement(m.mesh, trs.matrix(), m.cls, m.cad_id, origin="auto",
+                                       fit=r.accepted.fit.to_dict(), sym=r.accepted.sym, trs=trs))
     for note in notes[len(library.notes):]:
         log.info("auto-cad: %s", note)
     report = {
@@ -234,8 +237,8 @@ def _scan2cad_records(site_id: str, placements: list[CadPlacement]) -> list[dict
     for pl in placements:
         verts = np.asarray(pl.mesh.vertices)
         extra = {"origin": pl.origin, **({} if pl.fit is None else {"fit": pl.fit})}
-        models.append(aligned_model_record(pl.cad_id, pl.A_scan_cad, verts.min(axis=0), verts.max(axis=0), pl.sym,
-                                           **extra))
+        trs = pl.trs if pl.trs is not None else TRS.from_affine(pl.A_scan_cad)
+        models.append(aligned_model_record(pl.cad_id, trs, verts.min(axis=0), verts.max(axis=0), pl.sym, **extra))
     return [scan2cad_record(site_id, models)]
 
 

@@ -26,7 +26,8 @@ class CadPlacement:
     A_scan_cad : (4, 4) float64 affine (rotation · anisotropic scale + translation) CAD frame -> scan/map frame.
     cls : graph class; cad_id : "<synset>/<model id>".
     origin : "annotation" (a Scan2CAD file) or "auto" (cadreg/site/autocad.py); fit : the auto-alignment's fit
-    (JSON-able) or None; sym : Scan2CAD symmetry name when known.
+    (JSON-able) or None; sym : Scan2CAD symmetry name when known; trs : the Scan2CAD TRS A_scan_cad was made from
+    (scan frame = map frame), when it was, so that writing it back is exact.
     """
 
     mesh: object
@@ -36,6 +37,7 @@ class CadPlacement:
     origin: str = "annotation"
     fit: dict | None = None
     sym: str | None = None
+    trs: object | None = None
 
 
 @dataclass
