@@ -57,14 +57,19 @@ def _objects_seen(scene, f) -> int:
 
 def test_known_poses_are_recovered(scene, localizer) -> None:
     # The box room is harder than a real room: large bare planes give GICP local minima (one of these four
-    # views ends 10 cm off, flagged ambiguous), so three of four must be exact.
+    # views ends 10 cm off, flagged ambiguous or uncertain, its pose then first among the hypotheses), so three
+    # of four must be exact.
     exact = 0
     for f, T in _views(scene, 4, seed=1):
         r = localizer.localize(f)
-        assert r.status in (Status.OK, Status.AMBIGUOUS), r.diagnostics.notes
-        te, re_ = pose_errors(r.T_map_camera, T)
+        assert r.status in (Status.OK, Status.AMBIGUOUS, Status.UNCERTAIN), r.diagnostics.notes
+        T_est = r.T_map_camera if r.status != Status.UNCERTAIN else r.hypotheses[0].T_map_camera
+        te, re_ = pose_errors(T_est, T)
+        assert r.status != Status.OK or te < 0.05
         exact += te < 0.02 and re_ < 1.0
         assert te < 0.2 and re_ < 10.0, (te, re_, r.diagnostics.method)
+        if r.status == Status.UNCERTAIN:
+            continue  # not claimed: no covariance, and whichever hypothesis it was
         assert 0.0 < r.confidence <= 1.0 and r.covariance.shape == (6, 6)
         d = r.diagnostics
         assert d.method == "cadreg" and len(d.scan_objects) >= 2 and d.matches

@@ -33,7 +33,7 @@ from .fallback import FpfhRansac
 from .gravity import estimate_floor, map_floor_height, map_up_axis, planar_normals
 from .match import Hypotheses, MapGraph, distinct_best, gravity_hypotheses, kabsch_hypotheses, score_graph
 from .points import FramePoints, frame_to_points, voxel_downsample
-from .refine import REFINE_METHODS, RefineMap
+from .refine import REFINE_METHODS, RefineMap, RefineOutcome
 from .score import DistanceField, ViewCheck, score_poses
 from .stages import Candidate, Choice, Scan, StageTimer, answer_status, confidence, low_overlap_confidence
 from .tracking import Tracked, TrackState, track_frame
@@ -47,8 +47,10 @@ MIN_ROI_POINTS = 100
 # Cheapest first. FPFH + RANSAC runs only when the label-free search could not (no up direction): it costs
 # ten times more and, knowing nothing of gravity, is no better where the search finds nothing.
 FALLBACKS = ("bbs", "fpfh-ransac")
-# The refinement's voxel grows by this factor until the ROI fits MatchConfig.refine_points.
-VOXEL_GROWTH = 1.25
+# A point budget's voxel grows by this factor until the points fit (`_voxel_budget`).
+VOXEL_GROWTH = 1.15
+# Frame points of the coarse GICP of each hypothesis, at most.
+COARSE_POINTS = 1000
 # A refinement whose whole-frame fitness fell by more than this from its start slid (see `_refine`).
 SLIDE_TOLERANCE = 0.01
 # Flat-surface normals sampled for the yaw candidates of the label-free search when the up estimate gave none.
@@ -247,7 +249,10 @@ class Localizer:
         the graph's best is weak (FallbackConfig.min_graph_fitness)."""
         fb = self.config.fallback
         with timer("verify"):
-            source = small_gicp.preprocess_points(scan.down.xyz, self.config.refine.coarse_voxel_m,
+            # At most COARSE_POINTS frame points (a coarser grid for a frame that spans a large room): each
+            # candidate's coarse GICP costs a KD-tree query of each per iteration.
+            coarse = _voxel_budget(scan.down, self.config.refine.coarse_voxel_m, COARSE_POINTS)
+            source = small_gicp.preprocess_points(coarse.xyz, self.config.refine.coarse_voxel_m,
                                                   num_neighbors=GICP_NEIGHBORS)[0]
             candidates = self._coarse_align(hyp, source, scan)
             if prior is not None:
@@ -289,8 +294,9 @@ class Localizer:
         # (`_budget`), for at most refine_contenders hypotheses, each at most twice (the slide check below).
         roi_points = self._budget(roi_points, method)
         whole = None
-        refined = []
-        for c in contenders:
+
+        def refine(c: Candidate) -> tuple[float, RefineOutcome, Candidate, float]:
+            nonlocal whole
             out = self._refine_one(roi_points, c.T_map_camera, method)
             if roi_frame_points < len(scan.points):
                 # The ROI leaves out the frame's far points; when those were what held the pose along some
@@ -304,7 +310,26 @@ class Localizer:
                     if fit(again.T_map_camera) > fit(out.T_map_camera):
                         diag.notes.append("the ROI refinement slid: refined with the whole frame")
                         out = again
-            refined.append((self._agreement_score(out.T_map_camera, scan), out, c))
+            see = 0.0 if scan.zbuf is None else self.view_check.see_through(out.T_map_camera, scan.zbuf, scan.K)
+            # A pose at which the frame sees through the map ranks below one at which it does not, whatever its
+            # fit: the same factor as in the confidence.
+            return self._agreement_score(out.T_map_camera, scan) * max(0.0, 1.0 - see / mc.max_see_through), out, c, see
+
+        refined = [refine(c) for c in contenders]
+        if all(r[3] > mc.max_see_through for r in refined):
+            # Every contender puts the map in front of what the frame measured: the next distinct candidates
+            # (at most refine_contenders more) are refined until one does not.
+            tried = [r[1].T_map_camera for r in refined]
+            for c in candidates[1:]:
+                if len(refined) >= 2 * mc.refine_contenders:
+                    break
+                if any(c is k for k in contenders) or not all(self._distinct(c.T_map_camera, T) for T in tried):
+                    continue
+                refined.append(refine(c))
+                tried.append(refined[-1][1].T_map_camera)
+                if refined[-1][3] <= mc.max_see_through:
+                    diag.notes.append(f"the best {len(refined) - 1} poses saw through the map: took the next")
+                    break
         if len(refined) > 1:
             refined.sort(key=lambda r: -r[0])
             diag.notes.append(f"refined {len(refined)} close hypotheses, scores " + ", ".join(f"{r[0]:.3f}" for r in refined))
@@ -314,9 +339,8 @@ class Localizer:
             rival = next((c for c in candidates[1:] if self._distinct(c.T_map_camera, best.T_map_camera)), None)
             has_rival = rival is not None
             margin = best.score - (rival.score if has_rival else 0.0)
-        _, out, winner = refined[0]
+        _, out, winner, see = refined[0]
         fitness, rmse = self.refine_map.fitness(transform_points(out.T_map_camera, scan.check_xyz), inlier_m=rc.inlier_m)
-        see = 0.0 if scan.zbuf is None else self.view_check.see_through(out.T_map_camera, scan.zbuf, scan.K)
         return Choice(winner, out, margin, has_rival, fitness, rmse, center_camera, roi_frame_points, see)
 
     def _budget(self, points: FramePoints, method: str) -> FramePoints:
@@ -325,12 +349,7 @@ class Localizer:
         keeps its points). The others sample their own scales (down to 2 cm) and get the points as they are."""
         if method != "small_gicp":
             return points
-        voxel = self.config.refine.source_voxel_m
-        sparse = voxel_downsample(points, voxel)
-        while len(sparse) > self.config.match.refine_points:
-            voxel *= VOXEL_GROWTH
-            sparse = voxel_downsample(points, voxel)
-        return sparse
+        return _voxel_budget(points, self.config.refine.source_voxel_m, self.config.match.refine_points)
 
     def _refine_one(self, points: FramePoints, T_start: np.ndarray, method: str):
         rc = self.config.refine
@@ -456,6 +475,20 @@ class Localizer:
         mc = self.config.match
         return bool(np.linalg.norm(Ta[:3, 3] - Tb[:3, 3]) > mc.distinct_translation_m
                     or rotation_angle_deg(Ta[:3, :3].T @ Tb[:3, :3]) > mc.distinct_rotation_deg)
+
+
+def _voxel_budget(points: FramePoints, voxel_m: float, budget: int) -> FramePoints:
+    """`points` on a voxel grid of voxel_m or, when that leaves more than `budget`, of the coarser voxel that does
+    not (a grid, not a random sample: thin structure such as a door frame keeps its points). A frame's points lie
+    on surfaces, so their count falls about with the voxel's square: one guess, then growth by VOXEL_GROWTH."""
+    sparse = voxel_downsample(points, voxel_m)
+    if len(sparse) > budget:
+        voxel_m *= np.sqrt(len(sparse) / budget)
+        sparse = voxel_downsample(points, voxel_m)
+        while len(sparse) > budget:
+            voxel_m *= VOXEL_GROWTH
+            sparse = voxel_downsample(points, voxel_m)
+    return sparse
 
 
 def _single(T_map_camera: np.ndarray) -> Hypotheses:
