@@ -178,6 +178,16 @@ class LoadRun:
     warmup: list[RequestRecord] = field(default_factory=list)  # stream runs: each device's warm-up frames
 
 
+def _settle(record: RequestRecord, answer, frame: EncodedFrame) -> None:
+    """Record a stream answer (a zenoh/HTTP stream result with `lost`, `error`, `result`) on its request."""
+    if answer.lost:
+        record.code = "lost"
+    elif answer.error is not None:
+        record.code = answer.error.code
+    else:
+        _score(record, answer.result, frame)
+
+
 def _score(record: RequestRecord, result: dict[str, Any], frame: EncodedFrame) -> None:
     record.status = str(result.get("status"))
     diagnostics = result.get("diagnostics")
@@ -423,12 +433,7 @@ def run_stream_zenoh(endpoint: str, site_id: str, frames: Sequence[EncodedFrame]
             for r in stream.results():
                 rec.done_s = rec.sent_s + r.latency_ms / 1e3
                 rec.latency_ms = r.latency_ms
-                if r.lost:
-                    rec.code = "lost"
-                elif r.error is not None:
-                    rec.code = r.error.code
-                else:
-                    _score(rec, r.result, frames[rec.frame])
+                _settle(rec, r, frames[rec.frame])
 
     def play(d: int) -> None:
         nonlocal t0
@@ -446,12 +451,7 @@ def run_stream_zenoh(endpoint: str, site_id: str, frames: Sequence[EncodedFrame]
                     continue
                 rec.done_s = rec.sent_s + r.latency_ms / 1e3
                 rec.latency_ms = (rec.done_s - rec.scheduled_s) * 1e3
-                if r.lost:
-                    rec.code = "lost"
-                elif r.error is not None:
-                    rec.code = r.error.code
-                else:
-                    _score(rec, r.result, frames[rec.frame])
+                _settle(rec, r, frames[rec.frame])
                 if progress is not None:
                     with lock:
                         progress(rec)
