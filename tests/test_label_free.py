@@ -27,6 +27,7 @@ def test_only_a_well_supported_clear_winner_is_ok() -> None:
     assert _status() == Status.OK
     assert _status(has_rival=True, margin=0.01) == Status.AMBIGUOUS  # a close rival
     assert _status(see_through=0.3) == Status.UNCERTAIN  # the frame sees through the map there
+    assert _status(has_rival=True, margin=0.01, see_through=0.3) == Status.UNCERTAIN  # ... rival or not
     assert _status(trust=0.3) == Status.UNCERTAIN  # weak support
     assert _status(fitness=0.3) == Status.LOW_OVERLAP
     # Confidence falls with what the frame sees through, to 0 at max_see_through.

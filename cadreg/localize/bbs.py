@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import binary_dilation
 
 from ..geometry import rotation_between
 from .match import Hypotheses, distinct_best
@@ -78,11 +79,21 @@ class GridPyramid:
         self.map_lo_level, self.map_hi_level = lo, hi
         self.strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
         # Finest level: the score at each cell centre, from the exact distance field (looked up in the map frame).
-        idx = np.indices(tuple(dims)).reshape(3, -1).T
+        # Only cells within tau of a map point can score: those (the occupied cells grown by tau) are looked up,
+        # a tenth of the grid or less, so that building the pyramid costs a fraction of a second.
+        occupied = np.zeros(tuple(dims), dtype=bool)
+        cell = np.floor((p - self.origin) / voxel_m).astype(np.int64)
+        occupied[cell[:, 0], cell[:, 1], cell[:, 2]] = True
+        # A centre within tau of a point lies at most ceil(tau / voxel + ½) cells from its cell along each axis.
+        near = binary_dilation(occupied, structure=np.ones((3, 3, 3), dtype=bool),
+                               iterations=int(np.ceil(tau_m / voxel_m + 0.5)))
+        flat = np.flatnonzero(near)
+        idx = np.stack(np.unravel_index(flat, tuple(dims)), axis=1)
         centres = self.origin + (idx + 0.5) * voxel_m
         d = field.lookup(centres @ self.R_level_map)  # rows: R_level_mapᵀ · c, back in the map frame
-        s = np.clip(1.0 - (d / tau_m) ** 2, 0.0, 1.0)
-        base = np.rint(s * SCALE).astype(np.uint8).reshape(tuple(dims))
+        base = np.zeros(int(np.prod(dims)), dtype=np.uint8)
+        base[flat] = np.rint(np.clip(1.0 - (d / tau_m) ** 2, 0.0, 1.0) * SCALE).astype(np.uint8)
+        base = base.reshape(tuple(dims))
         self.grids = [base.ravel()]
         g = base
         for h in range(1, self.levels + 1):

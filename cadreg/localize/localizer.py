@@ -49,6 +49,9 @@ MIN_ROI_POINTS = 100
 FALLBACKS = ("bbs", "fpfh-ransac")
 # A point budget's voxel grows by this factor until the points fit (`_voxel_budget`).
 VOXEL_GROWTH = 1.15
+# Distinct candidates refined beyond the contenders when every contender sees through the map: two, since a
+# frame of a place the map lacks sees through it at every pose, and each costs a refinement.
+EXTRA_CONTENDERS = 2
 # Frame points of the coarse GICP of each hypothesis, at most.
 COARSE_POINTS = 1000
 # A refinement whose whole-frame fitness fell by more than this from its start slid (see `_refine`).
@@ -318,10 +321,11 @@ class Localizer:
         refined = [refine(c) for c in contenders]
         if all(r[3] > mc.max_see_through for r in refined):
             # Every contender puts the map in front of what the frame measured: the next distinct candidates
-            # (at most refine_contenders more) are refined until one does not.
+            # (at most EXTRA_CONTENDERS more) are refined until one does not.
             tried = [r[1].T_map_camera for r in refined]
+            limit = len(refined) + EXTRA_CONTENDERS
             for c in candidates[1:]:
-                if len(refined) >= 2 * mc.refine_contenders:
+                if len(refined) >= limit:
                     break
                 if any(c is k for k in contenders) or not all(self._distinct(c.T_map_camera, T) for T in tried):
                     continue

@@ -141,14 +141,16 @@ def low_overlap_confidence(fitness: float) -> float:
 def answer_status(fitness: float, margin: float, has_rival: bool, see_through: float, trust: float, *,
                   min_fitness: float, ambiguity_margin: float, max_see_through: float,
                   min_ok_confidence: float) -> Status:
-    """The status of a refined pose: `low_overlap` when too little of the frame lies on the map, `ambiguous` when
-    a distinct rival scored within the ambiguity margin, `uncertain` when its support is weak (the frame sees
-    through more than max_see_through of the map in view, or the confidence is below min_ok_confidence), else
-    `ok`. Only `ok` claims the pose is right."""
+    """The status of a refined pose: `low_overlap` when too little of the frame lies on the map; `uncertain` when
+    the frame sees through more than max_see_through of the map in view (close rival or not); `ambiguous` when a
+    distinct rival scored within the ambiguity margin; `uncertain` when the confidence is below min_ok_confidence;
+    else `ok`. Only `ok` claims the pose is right."""
     if fitness < min_fitness:
         return Status.LOW_OVERLAP
+    if see_through > max_see_through:
+        return Status.UNCERTAIN  # whatever its rivals: the frame contradicts the map at this pose
     if has_rival and margin < ambiguity_margin:
         return Status.AMBIGUOUS
-    if see_through > max_see_through or trust < min_ok_confidence:
+    if trust < min_ok_confidence:
         return Status.UNCERTAIN
     return Status.OK
