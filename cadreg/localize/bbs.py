@@ -230,7 +230,7 @@ class GridPyramid:
 
 
 def yaw_candidates(frame_normals_level: np.ndarray, map_hist: np.ndarray | None, *, step_deg: float,
-                   min_normals: int = 40, keep_ratio: float = 0.5, spread_deg: float = 6.0) -> np.ndarray:
+                   min_normals: int = 40, keep_ratio: float = 0.4, spread_deg: float = 6.0) -> np.ndarray:
     """Yaws (radians) worth searching, from the directions of the frame's vertical surfaces.
 
     Walls, cupboard fronts and furniture sides of the frame face the directions the map's do, turned by the
@@ -248,8 +248,10 @@ def yaw_candidates(frame_normals_level: np.ndarray, map_hist: np.ndarray | None,
         return all_yaws
     fh = axial_histogram(horizontal)
     bins = len(map_hist)
-    # corr[s] = Σ_b fh[b] · map_hist[b + s]: the frame's direction b lies at b + s in the map after a yaw of s bins.
-    corr = np.real(np.fft.ifft(np.conj(np.fft.fft(fh)) * np.fft.fft(map_hist)))
+    # corr[s] = Σ_b fh[b] · m[b + s]: the frame's direction b lies at b + s in the map after a yaw of s bins. m is
+    # the square root of the map's histogram: a map dominated by one wall direction must not outvote the true yaw
+    # of a frame that sees the other (a kitchen's long counter against its short side walls).
+    corr = np.real(np.fft.ifft(np.conj(np.fft.fft(fh)) * np.fft.fft(np.sqrt(map_hist))))
     good = np.flatnonzero(corr >= keep_ratio * corr.max())
     centres = np.concatenate([good, good + bins]) * (180.0 / bins)  # mod 180 -> both ways round
     yaw_deg = np.degrees(all_yaws)
