@@ -251,7 +251,9 @@ def yaw_candidates(frame_normals_level: np.ndarray, map_hist: np.ndarray | None,
     # corr[s] = Σ_b fh[b] · m[b + s]: the frame's direction b lies at b + s in the map after a yaw of s bins. m is
     # the square root of the map's histogram: a map dominated by one wall direction must not outvote the true yaw
     # of a frame that sees the other (a kitchen's long counter against its short side walls).
-    corr = np.real(np.fft.ifft(np.conj(np.fft.fft(fh)) * np.fft.fft(np.sqrt(map_hist))))
+    corr = np.real(np.fft.ifft(np.conj(np.fft.fft(fh)) * np.fft.fft(np.sqrt(np.maximum(map_hist, 0.0)))))
+    if not np.isfinite(corr).all() or corr.max() <= 0:
+        return all_yaws
     good = np.flatnonzero(corr >= keep_ratio * corr.max())
     centres = np.concatenate([good, good + bins]) * (180.0 / bins)  # mod 180 -> both ways round
     yaw_deg = np.degrees(all_yaws)
