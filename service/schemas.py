@@ -106,7 +106,7 @@ class LocalizeResponse(BaseModel):
 
     model_config = ConfigDict(extra="allow")
 
-    status: str = Field(description="ok | ambiguous | no_objects | no_match | low_overlap | failed")
+    status: str = Field(description="ok | ambiguous | uncertain | no_objects | no_match | low_overlap | failed")
     frame_id: str | None = None
     T_map_camera: list[list[float]] | None = Field(None, description="4x4 colour camera -> map; None unless ok/ambiguous")
     pose: PoseOut | None = None
