@@ -188,3 +188,22 @@ def test_warm_builds_the_fallback_features_up_front(scene) -> None:
 def test_config_is_validated() -> None:
     with pytest.raises(Exception):
         LocalizeConfig(refine=RefineConfig(method="bogus"))  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 30.0])
+def test_a_bare_wall_is_never_answered_ok(scene0470_site_dir, tilt_deg: float) -> None:
+    """Issue 14, item 5: a frame of one flat textureless wall (plausible camera, no labels) fits anywhere along any
+    wall of the map; it was answered `ok` with confidence 0.64. Whatever pose comes back, it is not claimed."""
+    from cadreg.site.bundle import Site
+
+    cam = CameraIntrinsics(640, 480, 577.87, 577.87, 319.5, 239.5)
+    v, u = np.mgrid[0:480, 0:640].astype(np.float64)
+    # a plane 1.5 m in front of the camera, turned by tilt_deg about the camera's vertical axis
+    slope = np.tan(np.radians(tilt_deg)) * (u - cam.cx) / cam.fx
+    depth_m = 1.5 / np.maximum(1.0 + slope, 0.2)
+    depth = np.where(depth_m < 4.0, depth_m * 1000.0, 0).astype(np.uint16)
+    rng = np.random.default_rng(0)
+    color = np.clip(200 + rng.normal(0, 2, (480, 640, 3)), 0, 255).astype(np.uint8)
+    frame = Frame(depth=depth, color=color, depth_intrinsics=cam, color_intrinsics=cam)
+    result = Localizer.from_site(Site.load(scene0470_site_dir)).localize(frame)
+    assert result.status != Status.OK, (result.status, result.confidence)
