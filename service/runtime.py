@@ -22,7 +22,7 @@ from .metrics import Metrics
 from .pool import JobResult, WorkerPool
 from .registry import SiteEntry, SiteRegistry, check_site_id, inspect_bundle
 from .schemas import FrameMeta
-from .sessions import SessionKey, SessionStore
+from .sessions import SessionKey, SessionStore, session_key
 from .settings import Settings
 
 log = logging.getLogger("cadreg.service")
@@ -125,7 +125,7 @@ class Service:
         check_image_sizes(parts, self.settings.max_frame_pixels)
         if self.pool is None:
             raise Overloaded("the service is starting", retry_after_s=self.settings.retry_after_s)
-        key = _session_key(site_id, meta, device_id)
+        key = session_key(site_id, meta.session_id, device_id)
         if key is None:
             return self.pool.submit(site_id, entry.version, parts, meta, timeout_s, reserve=reserve)
         session = self.sessions.job(key, entry.version, meta.stamp_s)
@@ -206,15 +206,6 @@ class Service:
         # The pool settles a control by the request timeout (hung workers are replaced); the margin is for its
         # dispatcher only, never the worker start timeout.
         return self.settings.request_timeout_s + 5.0
-
-
-def _session_key(site_id: str, meta: FrameMeta, device_id: str | None) -> SessionKey | None:
-    """The session a frame belongs to: its meta's `session_id`, else its zenoh stream device, else none."""
-    if meta.session_id is not None:
-        return ("session", site_id, meta.session_id)
-    if device_id is not None:
-        return ("device", site_id, device_id)
-    return None
 
 
 def _check_label_set(entry: SiteEntry, meta: FrameMeta, has_labels: bool) -> None:

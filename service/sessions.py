@@ -26,6 +26,15 @@ from typing import Any
 SessionKey = tuple[str, str, str]
 
 
+def session_key(site_id: str, session_id: str | None, device_id: str | None) -> SessionKey | None:
+    """The session a frame belongs to: its meta's `session_id`, else its zenoh stream device, else none."""
+    if session_id is not None:
+        return ("session", site_id, session_id)
+    if device_id is not None:
+        return ("device", site_id, device_id)
+    return None
+
+
 @dataclass(frozen=True)
 class SessionJob:
     """What travels with a session's job to the worker: the stored state (None for a new session) and the frame's

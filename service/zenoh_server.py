@@ -53,6 +53,7 @@ from .codec import encode_result, unpack_envelope
 from .errors import error_body
 from .logs import log_event
 from .runtime import Service
+from .sessions import session_key
 from .settings import Settings
 
 log = logging.getLogger("cadreg.service.zenoh")
@@ -434,7 +435,7 @@ class ZenohServer:
     def _make_room_for(self, site_id: str, device_id: str) -> bool:
         """At the device cap with no idle device: a device with a tracking session takes the place of the new
         device waiting longest for its first search (its frames are dropped, counted); False when there is none."""
-        if not self.service.sessions.holds(("device", site_id, device_id)):
+        if not self._has_session(site_id, device_id):
             return False
         victim = self._ready.pop_waiting_new()
         if victim is None:
@@ -448,7 +449,10 @@ class ZenohServer:
         return True
 
     def _tracked(self, device: _Device) -> bool:
-        return self.service.sessions.holds(("device", device.site_id, device.device_id))
+        return self._has_session(device.site_id, device.device_id)
+
+    def _has_session(self, site_id: str, device_id: str) -> bool:
+        return self.service.sessions.holds(session_key(site_id, None, device_id))
 
     def _take_next(self) -> tuple[_Device, bytes, float]:
         """The oldest frame of the first ready device (O(1)); it is then in flight."""
