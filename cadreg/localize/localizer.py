@@ -33,7 +33,7 @@ from .fallback import FpfhRansac
 from .gravity import estimate_floor, map_floor_height, map_up_axis, planar_normals
 from .match import Hypotheses, MapGraph, distinct_best, gravity_hypotheses, kabsch_hypotheses, score_graph
 from .points import FramePoints, frame_to_points, voxel_downsample
-from .refine import REFINE_METHODS, RefineMap, RefineOutcome
+from .refine import GICP_NEIGHBORS, REFINE_METHODS, RefineMap, RefineOutcome, crop_to_roi
 from .score import DistanceField, ViewCheck, score_poses
 from .stages import Candidate, Choice, Scan, StageTimer, answer_status, confidence, low_overlap_confidence
 from .tracking import Tracked, TrackState, track_frame
@@ -42,8 +42,6 @@ from .tracking import Tracked, TrackState, track_frame
 # drop the hopeless ones, three times cheaper than the full check of those kept.
 SCREEN_SHARE = 3
 MIN_SCREEN_POINTS = 20
-# Fewer frame points than this inside the ROI cannot carry a GICP: refine with the whole frame instead.
-MIN_ROI_POINTS = 100
 # Cheapest first. FPFH + RANSAC runs only when the label-free search could not (no up direction): it costs
 # ten times more and, knowing nothing of gravity, is no better where the search finds nothing.
 FALLBACKS = ("bbs", "fpfh-ransac")
@@ -58,8 +56,6 @@ COARSE_POINTS = 1000
 SLIDE_TOLERANCE = 0.01
 # Flat-surface normals sampled for the yaw candidates of the label-free search when the up estimate gave none.
 YAW_NORMAL_POINTS = 1000
-# Neighbours of each point's covariance in the coarse GICP: small_gicp's default, as for the map's side.
-GICP_NEIGHBORS = 10
 # An object's top is the 98th percentile of its points along up: the highest 2 % are mixed pixels and noise.
 TOP_PERCENTILE = 98
 
@@ -289,9 +285,7 @@ class Localizer:
         # structures are built once per site rather than cropped per frame; leaving out the frame points farther
         # than γ from their centroid has the same effect, since correspondences are sought only a few centimetres
         # from each frame point.
-        center_camera = scan.points.xyz.mean(axis=0)
-        in_roi = np.flatnonzero(np.linalg.norm(scan.points.xyz - center_camera, axis=1) <= rc.roi_radius_m)
-        roi_points = scan.points.subset(in_roi) if len(in_roi) >= MIN_ROI_POINTS else scan.points
+        roi_points, center_camera = crop_to_roi(scan.points, rc.roi_radius_m)
         roi_frame_points = len(roi_points)
         # The cost of a refinement is bounded by its inputs: at most MatchConfig.refine_points frame points
         # (`_budget`), for at most refine_contenders hypotheses, each at most twice (the slide check below).

@@ -18,6 +18,18 @@ from .color_gicp import ColorGicpTarget, color_gicp, prepare_cloud, rgb_to_lab
 from .points import FramePoints, voxel_indices
 
 REFINE_METHODS = ("color_gicp", "small_gicp", "open3d_colored_icp")
+# Neighbours of each point's covariance in GICP: small_gicp's default, for the map's side and the frame's alike.
+GICP_NEIGHBORS = 10
+# Fewer frame points than this inside the ROI cannot carry a GICP: refine with the whole frame instead.
+MIN_ROI_POINTS = 100
+
+
+def crop_to_roi(points: FramePoints, radius_m: float) -> tuple[FramePoints, np.ndarray]:
+    """The frame points within `radius_m` of their centroid (the whole frame when fewer than MIN_ROI_POINTS are),
+    and that centroid (colour-camera frame): the region of interest of paper §2.5 as seen from the frame."""
+    center_camera = points.xyz.mean(axis=0)
+    in_roi = np.flatnonzero(np.linalg.norm(points.xyz - center_camera, axis=1) <= radius_m)
+    return (points.subset(in_roi) if len(in_roi) >= MIN_ROI_POINTS else points), center_camera
 
 
 @dataclass
@@ -57,8 +69,8 @@ class RefineMap:
         self.coarse_voxel_m = coarse_voxel_m
         self.color_scales_m = tuple(color_scales_m)
         self.color_weight_m = color_weight_m
-        self.sg_fine, self.sg_fine_tree = small_gicp.preprocess_points(self.xyz, fine_voxel_m, num_neighbors=10)
-        self.sg_coarse, self.sg_coarse_tree = small_gicp.preprocess_points(self.xyz, coarse_voxel_m, num_neighbors=10)
+        self.sg_fine, self.sg_fine_tree = small_gicp.preprocess_points(self.xyz, fine_voxel_m, num_neighbors=GICP_NEIGHBORS)
+        self.sg_coarse, self.sg_coarse_tree = small_gicp.preprocess_points(self.xyz, coarse_voxel_m, num_neighbors=GICP_NEIGHBORS)
         keep = voxel_indices(self.xyz, fitness_voxel_m)
         self.fit_xyz = self.xyz[keep]
         self.fit_lab = rgb_to_lab(self.rgb[keep])
@@ -140,7 +152,7 @@ class RefineMap:
         """Refine T_map_camera from `init_T_map_camera` with the frame's points (colour-camera frame)."""
         T_init = np.asarray(init_T_map_camera, dtype=np.float64)
         if method == "small_gicp":
-            src, _ = small_gicp.preprocess_points(points.xyz, source_voxel_m, num_neighbors=10)
+            src, _ = small_gicp.preprocess_points(points.xyz, source_voxel_m, num_neighbors=GICP_NEIGHBORS)
             T = T_init
             # Wide then narrow correspondences: the wide pass pulls in a start some centimetres off, the narrow
             # one keeps stray points out of the final estimate.

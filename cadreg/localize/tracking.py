@@ -41,17 +41,13 @@ from ..frame import Frame
 from ..geometry import rotation_angle_deg, transform_points
 from ..result import Diagnostics, Hypothesis, LocalizationResult, Refinement, Roi, Status
 from .points import FramePoints, frame_to_points
-from .refine import covariance_from_hessian
+from .refine import GICP_NEIGHBORS, covariance_from_hessian, crop_to_roi
 from .stages import StageTimer, confidence, low_overlap_confidence
 
 if TYPE_CHECKING:
     from .localizer import Localizer
 
 MODES = ("tracked", "relocalized", "global")
-# Fewer frame points than this inside the ROI cannot carry a GICP: track with the whole frame instead.
-MIN_ROI_POINTS = 100
-# small_gicp's default neighbourhood for per-point covariances, as for the map's side.
-GICP_NEIGHBORS = 10
 
 
 @dataclass(frozen=True)
@@ -145,10 +141,6 @@ def velocity_between(T_prev: np.ndarray, T_next: np.ndarray, dt_s: float) -> np.
     return np.concatenate([w, T_next[:3, 3] - T_prev[:3, 3]]) / dt_s
 
 
-def _distinct(localizer: "Localizer", Ta: np.ndarray, Tb: np.ndarray) -> bool:
-    return localizer._distinct(Ta, Tb)
-
-
 def track_frame(localizer: "Localizer", frame: Frame, state: TrackState | None, *, t_s: float,
                 top_k: int | None = None) -> Tracked:
     """One session frame: tracked from `state` when it is live, else localized globally (see the module docstring).
@@ -203,10 +195,7 @@ def _track_points(localizer: "Localizer", frame: Frame) -> tuple[FramePoints, np
     points = frame_to_points(frame, pixel_stride=cfg.pixel_stride, min_depth_m=fc.min_depth_m, max_depth_m=fc.max_depth_m)
     if len(points) < fc.min_points:
         raise InvalidFrame(f"only {len(points)} valid depth points in range {fc.min_depth_m}–{fc.max_depth_m} m")
-    center = points.xyz.mean(axis=0)
-    in_roi = np.flatnonzero(np.linalg.norm(points.xyz - center, axis=1) <= localizer.config.refine.roi_radius_m)
-    if len(in_roi) >= MIN_ROI_POINTS:
-        points = points.subset(in_roi)
+    points, center = crop_to_roi(points, localizer.config.refine.roi_radius_m)
     check = np.random.default_rng(0).choice(len(points), min(cfg.check_points, len(points)), replace=False)
     return points, center, points.xyz[check]
 
@@ -245,7 +234,7 @@ def _prune(localizer: "Localizer", accepted: list[_Outcome], margin: float, coun
     for o in ranked:
         if o.fitness < ranked[0].fitness - margin:
             break
-        if all(_distinct(localizer, o.T_map_camera, k.T_map_camera) for k in kept):
+        if all(localizer._distinct(o.T_map_camera, k.T_map_camera) for k in kept):
             kept.append(o)
         if len(kept) == count:
             break
@@ -323,12 +312,12 @@ def _global(localizer: "Localizer", frame: Frame, state: TrackState | None, pred
             if len(tracks) == cfg.max_hypotheses:
                 break
             if h.geometric_score >= best_score - cfg.hypothesis_margin and all(
-                    _distinct(localizer, h.T_map_camera, t.T_map_camera) for t in tracks):
+                    localizer._distinct(h.T_map_camera, t.T_map_camera) for t in tracks):
                 tracks.append(Track(np.asarray(h.T_map_camera, dtype=np.float64), np.zeros(6), h.geometric_score))
         if len(tracks) > 1:
             diag.notes.append(f"the session tracks {len(tracks)} hypotheses until one remains")
     confirmed = True
-    if predicted is not None and _distinct(localizer, T, predicted):
+    if predicted is not None and localizer._distinct(T, predicted):
         jump = float(np.linalg.norm(T[:3, 3] - predicted[:3, 3]))
         diag.notes.append(f"relocalized {jump:.2f} m from where the session's motion put the camera")
         if result.status == Status.OK:
