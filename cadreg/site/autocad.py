@@ -106,12 +106,9 @@ class CadLibrary:
 
 
 def _rotate_z(points: np.ndarray, yaw_rad: float, center_xy: np.ndarray) -> np.ndarray:
-    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
-    out = points.copy()
-    xy = points[:, :2] - center_xy
-    out[:, 0] = c * xy[:, 0] - s * xy[:, 1] + center_xy[0]
-    out[:, 1] = s * xy[:, 0] + c * xy[:, 1] + center_xy[1]
-    return out
+    """points (m, 3) turned by yaw_rad about the vertical axis through center_xy."""
+    center = np.array([center_xy[0], center_xy[1], 0.0])
+    return (points - center) @ _Rz(yaw_rad).T + center
 
 
 def rotational_symmetry(samples_up: np.ndarray, seed: int = 0) -> str:
