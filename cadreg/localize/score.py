@@ -100,14 +100,19 @@ class ViewCheck:
         xyz_camera : (m, 3) frame points, camera frame; K : the depth camera's intrinsics (the colour camera's
         offset of a few centimetres does not matter at this resolution)."""
         rows, cols = int(np.ceil(K.height / cell_px)), int(np.ceil(K.width / cell_px))
-        z = xyz_camera[:, 2]
-        good = z > 1e-3
-        u = (K.fx * xyz_camera[good, 0] / z[good] + K.cx) // cell_px
-        v = (K.fy * xyz_camera[good, 1] / z[good] + K.cy) // cell_px
-        inside = (u >= 0) & (u < cols) & (v >= 0) & (v < rows)
+        p = xyz_camera[xyz_camera[:, 2] > 1e-3]
+        v, u, inside = ViewCheck._cells(p, K, cell_px, (rows, cols))
         zb = np.full(rows * cols, np.inf)
-        np.minimum.at(zb, (v[inside] * cols + u[inside]).astype(np.int64), z[good][inside])
+        np.minimum.at(zb, v[inside] * cols + u[inside], p[inside, 2])
         return zb.reshape(rows, cols)
+
+    @staticmethod
+    def _cells(p: np.ndarray, K, cell_px: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Row and column of the z-buffer cell each camera-frame point (z > 0) projects to, and which lie inside."""
+        rows, cols = shape
+        u = ((K.fx * p[:, 0] / p[:, 2] + K.cx) // cell_px).astype(np.int64)
+        v = ((K.fy * p[:, 1] / p[:, 2] + K.cy) // cell_px).astype(np.int64)
+        return v, u, (u >= 0) & (u < cols) & (v >= 0) & (v < rows)
 
     def see_through(self, T_map_camera: np.ndarray, zbuf: np.ndarray, K, *, cell_px: int = 8, margin_m: float = 0.1,
                     margin_ratio: float = 0.04, max_depth_m: float = 4.0, min_points: int = 50) -> float:
@@ -118,10 +123,7 @@ class ViewCheck:
         z = p[:, 2]
         near = (z > 0.2) & (z < max_depth_m)
         p, z = p[near], z[near]
-        rows, cols = zbuf.shape
-        u = ((K.fx * p[:, 0] / z + K.cx) // cell_px).astype(np.int64)
-        v = ((K.fy * p[:, 1] / z + K.cy) // cell_px).astype(np.int64)
-        inside = (u >= 0) & (u < cols) & (v >= 0) & (v < rows)
+        v, u, inside = self._cells(p, K, cell_px, zbuf.shape)
         measured = zbuf[v[inside], u[inside]]
         zi = z[inside]
         seen = np.isfinite(measured)
