@@ -12,6 +12,7 @@ import numpy as np
 
 from .camera import CameraIntrinsics
 from .errors import InvalidFrame
+from .geometry import is_rigid
 
 # Fields of view of real depth and colour cameras: telephoto phones ~25°, Kinect / RealSense / Structure 55–90°,
 # ultra-wide phones ~120°. Intrinsics outside these are a unit mistake (fx in metres, or in another image size)
@@ -83,7 +84,7 @@ class Frame:
         if not (np.isfinite(self.depth_scale) and self.depth_scale > 0):
             raise InvalidFrame(f"depth_scale must be a positive number, got {self.depth_scale}")
         T = np.asarray(self.T_color_depth, dtype=float)
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not _is_rigid(T):
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not is_rigid(T):
             raise InvalidFrame("T_color_depth must be a finite rigid 4x4 transform")
         self.T_color_depth = T
         if self.gravity_camera is not None:
@@ -93,16 +94,8 @@ class Frame:
             self.gravity_camera = g / np.linalg.norm(g)
         if self.T_map_camera_prior is not None:
             P = np.asarray(self.T_map_camera_prior, dtype=float)
-            if P.shape != (4, 4) or not np.all(np.isfinite(P)) or not _is_rigid(P):
+            if P.shape != (4, 4) or not np.all(np.isfinite(P)) or not is_rigid(P):
                 raise InvalidFrame("pose prior must be a finite rigid 4x4 transform")
             self.T_map_camera_prior = P
         if not np.any(d):
             raise InvalidFrame("depth has no valid pixel (all zero)")
-
-
-def _is_rigid(T: np.ndarray, tol: float = 1e-3) -> bool:
-    R = T[:3, :3]
-    if np.abs(R).max() > 1.0 + tol:  # a rotation's entries lie in [-1, 1]; checked first, as R @ R.T may overflow
-        return False
-    return bool(np.allclose(R @ R.T, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1.0) < tol
-                and np.allclose(T[3], [0, 0, 0, 1], atol=1e-9))

@@ -19,6 +19,15 @@ def make_T(R: np.ndarray | None = None, t: np.ndarray | None = None) -> np.ndarr
     return T
 
 
+def is_rigid(T: np.ndarray, tol: float = 1e-3) -> bool:
+    """T (4, 4), finite: a rotation (orthonormal, det +1, within `tol`) and a translation, bottom row 0 0 0 1."""
+    R = T[:3, :3]
+    if np.abs(R).max() > 1.0 + tol:  # a rotation's entries lie in [-1, 1]; checked first, as R @ R.T may overflow
+        return False
+    return bool(np.allclose(R @ R.T, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1.0) < tol
+                and np.allclose(T[3], [0, 0, 0, 1], atol=1e-9))
+
+
 def invert_T(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid 4×4 transform, without a general matrix inverse."""
     R = T[:3, :3]

@@ -27,7 +27,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from ..errors import ConfigError, InvalidFileError
-from ..geometry import transform_points
+from ..geometry import is_rigid, transform_points
 from ..pointset import PointSet
 from .bundle import Site
 from .graph import ObjectNode, build_graph
@@ -53,9 +53,7 @@ class RoomEntry(BaseModel):
         T = np.asarray(value, dtype=float)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError("must be a finite 4x4 matrix")
-        R = T[:3, :3]
-        if not (np.allclose(R @ R.T, np.eye(3), atol=1e-6) and abs(np.linalg.det(R) - 1) < 1e-6
-                and np.allclose(T[3], [0, 0, 0, 1])):
+        if not is_rigid(T, tol=1e-6):
             raise ValueError("must be a rigid transform (rotation and translation)")
         return value
 
