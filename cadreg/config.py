@@ -245,6 +245,15 @@ class TrackConfig(_Section):
                                 "behind the best's is pruned; the session answers 'ok' once one is left")
 
 
+class RegionConfig(_Section):
+    """Regions of a building-scale site (`localize/regions.py`): the rooms a frame may be in."""
+
+    max_cached: int = Field(16, ge=1, description="regions whose refinement maps a localizer keeps built (least "
+                            "recently used dropped): a worker's memory is bounded by this, not by the building")
+    max_verified: int = Field(8, ge=1, description="regions whose best graph hypotheses go on to the coarse GICP: "
+                              "the graph match ranks regions, and only the best are verified and refined")
+
+
 class LocalizeConfig(_Section):
     frame: FrameConfig = FrameConfig()
     cluster: ClusterConfig = ClusterConfig()
@@ -253,6 +262,7 @@ class LocalizeConfig(_Section):
     refine: RefineConfig = RefineConfig()
     fallback: FallbackConfig = FallbackConfig()
     track: TrackConfig = TrackConfig()
+    regions: RegionConfig = RegionConfig()
 
 
 # --- rendering and fusion (query frames from a mesh; maps from recorded frames) ---------------------------------

@@ -62,13 +62,14 @@ class SiteEntry:
     points: int
     classes: tuple[str, ...]
     label_sets: tuple[str, ...] = ()  # the label sets the site has a label map for (site.json `label_maps`)
+    regions: tuple[dict[str, Any], ...] = ()  # {id, bounds, objects, points} per region (`GET /v1/sites/{id}`)
 
     def summary(self) -> dict[str, Any]:
         return {"site_id": self.site_id, "version": self.version}
 
     def info(self) -> dict[str, Any]:
         return {"site_id": self.site_id, "version": self.version, "nodes": self.nodes, "edges": self.edges,
-                "points": self.points, "classes": list(self.classes)}
+                "points": self.points, "classes": list(self.classes), "regions": [dict(r) for r in self.regions]}
 
 
 def inspect_bundle(path: str | Path) -> SiteEntry:
@@ -86,16 +87,33 @@ def inspect_bundle(path: str | Path) -> SiteEntry:
         sizes = {key: int(counts[key]) for key in ("points", "nodes", "edges")}
         classes = tuple(str(c) for c in meta["classes"])
         label_sets = tuple(sorted(str(k) for k in meta.get("label_maps", {})))
+        raw_points = int(counts.get("raw_points", 0))
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise InvalidFileError(meta_path, f"malformed counts, classes or label_maps: {exc!r}") from None
+    regions = _region_infos(meta, meta_path, sizes, raw_points)
     return SiteEntry(
         site_id=str(meta["site_id"]),
         version=str(meta["version"]),
         path=str(Path(path).resolve()),
         classes=classes,
         label_sets=label_sets,
+        regions=regions,
         **sizes,
     )
+
+
+def _region_infos(meta: dict[str, Any], meta_path: Path, sizes: dict[str, int],
+                  raw_points: int) -> tuple[dict[str, Any], ...]:
+    """The regions of site.json as the API reports them; a bundle from before regions is one region without
+    bounds."""
+    from cadreg.site.regions import from_manifest
+
+    if not meta.get("regions"):
+        return ({"id": str(meta["site_id"]), "bounds": None, "objects": sizes["nodes"],
+                 "points": sizes["points"] + raw_points},)
+    regions = from_manifest(meta["regions"], map_points=sizes["points"], raw_points=raw_points, source=str(meta_path))
+    return tuple({"id": r.id, "bounds": r.bounds.round(4).tolist(), "objects": len(r.nodes), "points": r.points}
+                 for r in regions)
 
 
 def find_bundles(root: Path) -> list[Path]:

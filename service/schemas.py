@@ -128,6 +128,15 @@ class SiteList(BaseModel):
     sites: list[SiteSummary]
 
 
+class RegionInfo(BaseModel):
+    id: str = Field(description="region id (a composed building's room name); usable in `search_region.region_ids`")
+    bounds: list[list[float]] | None = Field(
+        description="[[x0, y0, z0], [x1, y1, z1]] axis-aligned box of the region's points, map frame, metres "
+                    "(null for a bundle built before regions)")
+    objects: int = Field(description="graph nodes inside the region")
+    points: int = Field(description="map and raw points of the region")
+
+
 class SiteInfo(BaseModel):
     site_id: str
     version: str
@@ -135,6 +144,7 @@ class SiteInfo(BaseModel):
     edges: int
     points: int = Field(description="points in the enhanced map")
     classes: list[str]
+    regions: list[RegionInfo] = Field(default_factory=list, description="the site's regions (rooms of a building)")
 
 
 class Health(BaseModel):

@@ -147,7 +147,7 @@ def test_constant_velocity_prediction_recovers_a_known_motion() -> None:
 def test_tracking_off_localizes_every_session_frame_globally(localizer: Localizer, recorded: RecordedFrames) -> None:
     config = LocalizeConfig(track=TrackConfig(enabled=False))
     off = Localizer(localizer.site, config, up=localizer.up, floor_height_m=localizer.floor_height_m,
-                    graph=localizer.graph, field=localizer.field, refine_map=localizer.refine_map)
+                    graph=localizer.graph, field=localizer.field, maps=localizer.maps)
     frame, T_true = recorded.load(FIRST + 2)
     r = off.track(frame, _state_at(T_true), t_s=1 / 30.0).result
     assert r.diagnostics.mode == "relocalized" and "tracking is off" in r.diagnostics.notes

@@ -100,6 +100,8 @@ def site_summary(site) -> dict:
         "label_sets": sorted(site.label_maps),
         "built_at": site.manifest.get("built_at"),
         "cad_fit": list(site.manifest.get("enhance", {}).get("cads", [])),
+        "regions": [{"id": r.id, "bounds": r.bounds.round(4).tolist(), "objects": len(r.nodes), "points": r.points}
+                    for r in site.regions],
     }
 
 
@@ -113,6 +115,12 @@ def _info(args: argparse.Namespace) -> int:
         return 0
     print(f"site {info['site_id']}  version {info['version']}  built {info['built_at']}")
     print(f"map points {info['points']}  raw points {info['raw_points']}  edges {info['edges']}")
+    print(f"{len(info['regions'])} region(s):")
+    print(f"{'region':<12} {'objects':>7} {'points':>9}  bounds [m]")
+    for r in info["regions"]:
+        (x0, y0, z0), (x1, y1, z1) = r["bounds"]
+        print(f"{r['id']:<12} {r['objects']:>7} {r['points']:>9}  "
+              f"({x0:.2f}, {y0:.2f}, {z0:.2f}) – ({x1:.2f}, {y1:.2f}, {z1:.2f})")
     print(f"{'id':<12} {'class':<16} {'source':<8} {'origin':<10} {'points':>7}  centroid [m]")
     for n in info["nodes"]:
         c = n["centroid"]

@@ -34,6 +34,7 @@ from .gravity import estimate_floor, map_floor_height, map_up_axis, planar_norma
 from .match import Hypotheses, MapGraph, distinct_best, gravity_hypotheses, kabsch_hypotheses, score_graph
 from .points import FramePoints, frame_to_points, voxel_downsample
 from .refine import GICP_NEIGHBORS, REFINE_METHODS, RefineMap, RefineOutcome, crop_to_roi
+from .regions import RegionIndex, RegionMaps
 from .score import DistanceField, ViewCheck, score_poses
 from .stages import Candidate, Choice, Scan, StageTimer, answer_status, confidence, low_overlap_confidence
 from .tracking import Tracked, TrackState, track_frame
@@ -58,6 +59,9 @@ SLIDE_TOLERANCE = 0.01
 YAW_NORMAL_POINTS = 1000
 # An object's top is the 98th percentile of its points along up: the highest 2 % are mixed pixels and noise.
 TOP_PERCENTILE = 98
+# Without the frame's points at hand, a pose's region is the one this far ahead of the camera lies in (camera
+# frame, metres): about where a room-scale frame's points are centred.
+LOOK_AHEAD_CAMERA = np.array([0.0, 0.0, 1.5])
 
 
 class Localizer:
@@ -65,42 +69,69 @@ class Localizer:
 
     up : (3,) unit vector opposite to gravity, map frame. floor_height_m : the floor's height along `up`, metres.
     graph : the site's semantic graph as arrays. field : distance field over the whole map (raw and enhanced).
-    refine_map : the map the refinement and the agreement scores use (`RefineConfig.map_points`).
+    maps : the site's regions and, per region, the map the refinement and the agreement scores use
+    (`RefineConfig.map_points`) and the free-space check (`regions.py`): a pose uses those of the region it looks
+    into. node_region : (k,) int, the region (index into `maps.regions`) of each graph node.
     """
 
     def __init__(self, site: Site, config: LocalizeConfig, *, up: np.ndarray, floor_height_m: float, graph: MapGraph,
-                 field: DistanceField, refine_map: RefineMap) -> None:
+                 field: DistanceField, maps: RegionMaps) -> None:
         self.site = site
         self.config = config
         self.up = up
         self.floor_height_m = floor_height_m
         self.graph = graph
         self.field = field
-        self.refine_map = refine_map
+        self.maps = maps
+        region_of = {n: k for k, r in enumerate(maps.regions) for n in r.nodes}
+        self.node_region = np.array([region_of.get(i, -1) for i in graph.ids], dtype=np.int64)
         self._fpfh: FpfhRansac | None = None
+        self._whole: RefineMap | None = None
         self._pyramid: tuple[GridPyramid, np.ndarray | None] | None = None
-        self.view_check = ViewCheck(refine_map.xyz)
 
     @classmethod
     def from_site(cls, site: Site, config: LocalizeConfig = LocalizeConfig()) -> "Localizer":
         """Build every per-site search structure (distance field, small_gicp map, KD-trees) once."""
-        refine_cloud = site.cloud(config.refine.map_points)
         every = site.cloud("both")
         every_xyz = every.points.astype(np.float64)
         every_normals = every.normals.astype(np.float64)
         # From the map's surfaces: +z for ScanNet and the demo, not for KinectFusion maps.
         up = map_up_axis(every_normals)
         up = up / np.linalg.norm(up)
-        rc = config.refine
         return cls(
             site, config, up=up,
             floor_height_m=map_floor_height(every_xyz, every_normals, up),
             graph=MapGraph.from_site(site, up),
             field=DistanceField(every_xyz),
-            refine_map=RefineMap(refine_cloud.points.astype(np.float64), refine_cloud.rgb01(), refine_cloud.class_index,
-                                 fine_voxel_m=rc.fine_voxel_m, coarse_voxel_m=rc.coarse_voxel_m,
-                                 color_scales_m=rc.color_scales_m, color_weight_m=rc.color_weight_m),
+            maps=RegionMaps(site, config),
         )
+
+    def maps_at(self, T_map_camera: np.ndarray, center_camera: np.ndarray = LOOK_AHEAD_CAMERA) -> RegionIndex:
+        """The search structures of the region a pose looks into: the region holding `center_camera` (the
+        frame's centre, camera frame) placed by the pose."""
+        return self.maps.at(T_map_camera[:3, :3] @ center_camera + T_map_camera[:3, 3])
+
+    @property
+    def refine_map(self) -> RefineMap:
+        """The whole site's refinement map: the one region's of a one-room site; built on first use for a
+        building (for the baselines of the bench, which search the whole map: the localizer itself uses
+        `maps_at`)."""
+        if len(self.maps) == 1:
+            return self.maps.index(self.maps.regions[0]).refine_map
+        if self._whole is None:
+            rc = self.config.refine
+            cloud = self.site.cloud(rc.map_points)
+            self._whole = RefineMap(cloud.points.astype(np.float64), cloud.rgb01(), cloud.class_index,
+                                    fine_voxel_m=rc.fine_voxel_m, coarse_voxel_m=rc.coarse_voxel_m,
+                                    color_scales_m=rc.color_scales_m, color_weight_m=rc.color_weight_m)
+        return self._whole
+
+    @property
+    def view_check(self) -> ViewCheck:
+        """The free-space check of a one-room site (a building's are per region: `maps_at`)."""
+        if len(self.maps) != 1:
+            raise InvalidArgument("a site of several regions has a free-space check per region: use maps_at(T)")
+        return self.maps.index(self.maps.regions[0]).view_check
 
     def warm(self) -> "Localizer":
         """Build now what is otherwise built on first use (the map's FPFH features for the fallback, about a second
@@ -197,7 +228,8 @@ class Localizer:
         check = rng.choice(len(points), min(fc.check_points, len(points)), replace=False)
         return Scan(points, down, class_index, clusters, floor, score_xyz=down.xyz[score], fit_xyz=down.xyz[fit],
                     fit_rgb=down.rgb[fit], fit_cls=class_index[fit], check_xyz=points.xyz[check],
-                    zbuf=ViewCheck.zbuffer(down.xyz, frame.depth_intrinsics), K=frame.depth_intrinsics)
+                    zbuf=ViewCheck.zbuffer(down.xyz, frame.depth_intrinsics), K=frame.depth_intrinsics,
+                    center_camera=points.xyz.mean(axis=0))
 
     def _hypotheses(self, scan: Scan) -> Hypotheses:
         """Scan graph x map graph -> the distinct best pose hypotheses (at most MatchConfig.candidates): a quick
@@ -294,20 +326,22 @@ class Localizer:
 
         def refine(c: Candidate) -> tuple[float, RefineOutcome, Candidate, float]:
             nonlocal whole
-            out = self._refine_one(roi_points, c.T_map_camera, method)
+            maps = self.maps_at(c.T_map_camera, center_camera)
+            out = self._refine_one(maps.refine_map, roi_points, c.T_map_camera, method)
             if roi_frame_points < len(scan.points):
                 # The ROI leaves out the frame's far points; when those were what held the pose along some
                 # direction (a corner whose far wall lies beyond γ), the refinement slides and the whole frame
                 # fits worse than at its start. Then the whole frame (within the same point budget) refines it.
-                fit = lambda T: self.refine_map.fitness(transform_points(T, scan.check_xyz), inlier_m=rc.inlier_m)[0]  # noqa: E731
+                fit = lambda T: maps.refine_map.fitness(transform_points(T, scan.check_xyz), inlier_m=rc.inlier_m)[0]  # noqa: E731
                 start = fit(c.T_map_camera)
                 if fit(out.T_map_camera) < start - SLIDE_TOLERANCE:
                     whole = whole or self._budget(scan.points, method)
-                    again = self._refine_one(whole, c.T_map_camera, method)
+                    again = self._refine_one(maps.refine_map, whole, c.T_map_camera, method)
                     if fit(again.T_map_camera) > fit(out.T_map_camera):
                         diag.notes.append("the ROI refinement slid: refined with the whole frame")
                         out = again
-            see = 0.0 if scan.zbuf is None else self.view_check.see_through(out.T_map_camera, scan.zbuf, scan.K)
+            see = 0.0 if scan.zbuf is None else self.maps_at(out.T_map_camera, center_camera).view_check.see_through(
+                out.T_map_camera, scan.zbuf, scan.K)
             # A pose at which the frame sees through the map ranks below one at which it does not, whatever its
             # fit: the same factor as in the confidence.
             return self._agreement_score(out.T_map_camera, scan) * max(0.0, 1.0 - see / mc.max_see_through), out, c, see
@@ -338,7 +372,8 @@ class Localizer:
             has_rival = rival is not None
             margin = best.score - (rival.score if has_rival else 0.0)
         _, out, winner, see = refined[0]
-        fitness, rmse = self.refine_map.fitness(transform_points(out.T_map_camera, scan.check_xyz), inlier_m=rc.inlier_m)
+        fitness, rmse = self.maps_at(out.T_map_camera, center_camera).refine_map.fitness(
+            transform_points(out.T_map_camera, scan.check_xyz), inlier_m=rc.inlier_m)
         return Choice(winner, out, margin, has_rival, fitness, rmse, center_camera, roi_frame_points, see)
 
     def _budget(self, points: FramePoints, method: str) -> FramePoints:
@@ -349,9 +384,9 @@ class Localizer:
             return points
         return _voxel_budget(points, self.config.refine.source_voxel_m, self.config.match.refine_points)
 
-    def _refine_one(self, points: FramePoints, T_start: np.ndarray, method: str):
+    def _refine_one(self, refine_map: RefineMap, points: FramePoints, T_start: np.ndarray, method: str):
         rc = self.config.refine
-        return self.refine_map.refine(points, T_start, method=method, epsilon=rc.epsilon, source_voxel_m=rc.source_voxel_m,
+        return refine_map.refine(points, T_start, method=method, epsilon=rc.epsilon, source_voxel_m=rc.source_voxel_m,
                                       max_correspondence_m=rc.max_correspondence_m, max_iterations=rc.max_iterations)
 
     def _result(self, scan: Scan, candidates: list[Candidate], choice: Choice, top_k: int, diag: Diagnostics,
@@ -367,7 +402,8 @@ class Localizer:
                                      inlier_rmse_m=choice.rmse_m, converged=out.converged)
         center = transform_points(T, choice.center_camera[None])[0]
         # The count alone (return_length): building the list of a 3 m ball's indices costs more than the search.
-        in_roi = int(self.refine_map.fit_tree.query_ball_point(center, rc.roi_radius_m, return_length=True))
+        maps = self.maps_at(T, choice.center_camera)
+        in_roi = int(maps.refine_map.fit_tree.query_ball_point(center, rc.roi_radius_m, return_length=True))
         diag.roi = Roi(center.tolist(), rc.roi_radius_m, in_roi, choice.roi_frame_points)
         if winner.hypothesis.source == "graph":
             diag.matches = [Match(i, self.graph.ids[a], self.site.classes[scan.clusters[i].cls])
@@ -451,7 +487,7 @@ class Localizer:
         scored = lambda values: len(values) == len(hyp)  # noqa: E731  (fallback hypotheses carry no Sim terms)
         out = []
         for i in range(len(hyp)):
-            T = self.refine_map.coarse_align(source, hyp.T(i))
+            T = self._maps(hyp.T(i), scan).refine_map.coarse_align(source, hyp.T(i))
             score = self._agreement_score(T, scan)
             assignment = hyp.assignment[i] if scored(hyp.assignment) else np.zeros(0, dtype=np.int64)
             h = Hypothesis(T, float(hyp.sim[i]) if scored(hyp.sim) else 0.0, float(hyp.s_v[i]) if scored(hyp.s_v) else 0.0,
@@ -465,9 +501,12 @@ class Localizer:
         """Geometric fitness weighted by label and colour agreement of the scan's fit sample placed by T: geometry
         alone cannot tell a wall from the opposite wall or a chair seen from above turned by 90°."""
         mc = self.config.match
-        geo, sem, col = self.refine_map.agreement(transform_points(T_map_camera, scan.fit_xyz), scan.fit_rgb,
+        geo, sem, col = self._maps(T_map_camera, scan).refine_map.agreement(transform_points(T_map_camera, scan.fit_xyz), scan.fit_rgb,
                                                   scan.fit_cls, inlier_m=self.config.refine.inlier_m)
         return geo * (1.0 - mc.semantic_weight + mc.semantic_weight * sem) * (1.0 - mc.color_weight + mc.color_weight * col)
+
+    def _maps(self, T_map_camera: np.ndarray, scan: Scan) -> RegionIndex:
+        return self.maps_at(T_map_camera, LOOK_AHEAD_CAMERA if scan.center_camera is None else scan.center_camera)
 
     def _distinct(self, Ta: np.ndarray, Tb: np.ndarray) -> bool:
         mc = self.config.match

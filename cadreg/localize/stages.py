@@ -56,6 +56,7 @@ class Scan:
     check_xyz: np.ndarray
     zbuf: np.ndarray | None = None
     K: object | None = None
+    center_camera: np.ndarray | None = None  # (3,) centroid of `points`: where a pose's region is looked up
 
 
 @dataclass

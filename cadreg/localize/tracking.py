@@ -205,7 +205,7 @@ def _refine(localizer: "Localizer", points: FramePoints, check_xyz: np.ndarray, 
     """Coarse then fine GICP from the prediction against the site's small_gicp maps; accepted when the fitness
     holds and the refinement moved the prediction little (the motion agrees)."""
     cfg, rc = localizer.config.track, localizer.config.refine
-    rm = localizer.refine_map
+    rm = localizer.maps_at(predicted, points.xyz.mean(axis=0)).refine_map
     coarse, _ = small_gicp.preprocess_points(points.xyz, rc.coarse_voxel_m, num_neighbors=GICP_NEIGHBORS)
     T = rm.coarse_align(coarse, predicted, max_correspondence_m=cfg.coarse_correspondence_m,
                         max_iterations=cfg.coarse_iterations)
@@ -251,7 +251,8 @@ def _tracked_result(localizer: "Localizer", frame: Frame, state: TrackState, kep
     diag.refinement = Refinement(method="small_gicp", iterations=best.iterations, fitness=best.fitness,
                                  inlier_rmse_m=best.rmse_m, converged=best.converged)
     center = transform_points(best.T_map_camera, center_camera[None])[0]
-    diag.roi = Roi(center.tolist(), rc.roi_radius_m, localizer.refine_map.roi_count(center, rc.roi_radius_m),
+    diag.roi = Roi(center.tolist(), rc.roi_radius_m, localizer.maps_at(best.T_map_camera, center_camera).refine_map.roi_count(
+        center, rc.roi_radius_m),
                    frame_points)
     diag.notes.append(f"tracked {len(state.tracks)} hypothes{'i' if len(state.tracks) == 1 else 'e'}s, "
                       f"{len(kept)} kept; correction {best.correction_m * 100:.1f} cm / {best.correction_deg:.1f}°")

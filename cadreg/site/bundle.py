@@ -29,6 +29,7 @@ from ..io.bundle_files import read_bytes, read_json, sha256_bytes, write_bundle_
 from ..labels import labels_to_class_index
 from ..pointset import PointSet
 from .graph import ObjectNode, SemanticGraph  # noqa: F401  (ObjectNode is part of this module's API)
+from .regions import Region, from_manifest, region_from_points, to_manifest
 
 SCHEMA = "cadreg.site/1"
 DATA_FILES = ("map.ply", "raw.ply", "graph.json")
@@ -73,6 +74,19 @@ class Site:
         return self.raw if which == "raw" else PointSet.concat([self.raw, self.map])
 
     @property
+    def regions(self) -> list[Region]:
+        """The site's regions (`regions.py`): the rooms of a composed site as site.json lists them, else one
+        region holding the whole map, named after the site."""
+        entries = self.manifest.get("regions")
+        if not entries:
+            return [whole_site_region(self)]
+        return from_manifest(entries, map_points=len(self.map), raw_points=len(self.raw))
+
+    def region_of_node(self) -> dict[str, str]:
+        """{graph node id: id of the region holding it}."""
+        return {n: r.id for r in self.regions for n in r.nodes}
+
+    @property
     def edge_max_m(self) -> float:
         """δ of this site's graph (its build parameters): scan graphs must use the same to be comparable."""
         build = self.manifest.get("build_config", {}).get("graph", {})
@@ -110,6 +124,8 @@ class Site:
         hashes = {k: sha256_bytes(v) for k, v in files.items()}
         self.version = version_of(hashes)
         meta = dict(self.manifest)
+        if not meta.get("regions"):
+            meta["regions"] = to_manifest([whole_site_region(self)])
         meta.update({
             "schema": SCHEMA,
             "site_id": self.site_id,
@@ -158,8 +174,17 @@ class Site:
         for name, cloud in (("map.ply", enhanced), ("raw.ply", raw)):
             if (cloud.class_index >= len(classes)).any():
                 raise InvalidFileError(root / name, f"class indices beyond the {len(classes)} classes of site.json")
-        return cls(site_id=str(meta["site_id"]), version=str(meta["version"]), manifest=meta, map=enhanced, raw=raw,
+        site = cls(site_id=str(meta["site_id"]), version=str(meta["version"]), manifest=meta, map=enhanced, raw=raw,
                    graph=graph, classes=classes, label_maps=label_maps)
+        if meta.get("regions"):
+            from_manifest(meta["regions"], map_points=len(enhanced), raw_points=len(raw), source=str(meta_path))
+        return site
+
+
+def whole_site_region(site: Site) -> Region:
+    """One region holding all of `site`, named after it."""
+    return region_from_points(site.site_id, [site.map.points, site.raw.points], [n.id for n in site.graph.nodes],
+                              (0, len(site.map)), (0, len(site.raw)))
 
 
 def _read_checked(root: Path, *, verify: bool) -> tuple[dict[str, Any], dict[str, bytes]]:

@@ -12,7 +12,8 @@ room's map and raw points and graph nodes are moved into the building frame; nod
 `drop_objects` removes objects of that room: their node, and their points in both clouds (inside the node's box
 grown by DROP_MARGIN_M), as when a chair is missing from one of two identical rooms. The graph's edges are
 rebuilt over all nodes with the rooms' δ (rooms touching each other get edges across). Instance ids are offset per
-room so that they stay distinct. The output is one ordinary bundle (cadreg/site/bundle.py), loaded and served as
+room so that they stay distinct. Each room is a region of the site (`regions.py`): its name, box, nodes and its
+rows of the two clouds (rooms are written one after the other). The output is one ordinary bundle (cadreg/site/bundle.py), loaded and served as
 any other.
 """
 
@@ -31,6 +32,7 @@ from ..geometry import is_rigid, transform_points
 from ..pointset import PointSet
 from .bundle import Site
 from .graph import ObjectNode, build_graph
+from .regions import region_from_points, to_manifest
 
 # Points of a dropped object within this of its box go with it (CAD boxes are tight; scans bleed a little).
 DROP_MARGIN_M = 0.03
@@ -131,7 +133,8 @@ def compose_site(layout: Layout, root: str | Path) -> Site:
         if r.site.classes != first.classes or r.site.label_maps != first.label_maps:
             raise ConfigError(f"room {r.entry.name!r} ({r.entry.bundle}) has other classes or label maps than "
                               f"room {rooms[0].entry.name!r}: rooms of one site must share them")
-    maps, raws, nodes = [], [], []
+    maps, raws, nodes, regions = [], [], [], []
+    map_at = raw_at = 0
     for k, r in enumerate(rooms):
         ids = {n.id for n in r.site.graph.nodes}
         unknown = sorted(set(r.entry.drop_objects) - ids)
@@ -144,10 +147,17 @@ def compose_site(layout: Layout, root: str | Path) -> Site:
             site_raw = site_raw.take(_outside_boxes(site_raw.points.astype(np.float64), dropped))
         maps.append(_moved(site_map, r.T, k * INSTANCE_STRIDE))
         raws.append(_moved(site_raw, r.T, k * INSTANCE_STRIDE))
-        nodes += [_moved_node(n, r.entry.name, r.T) for n in r.site.graph.nodes if n.id not in r.entry.drop_objects]
+        room_nodes = [_moved_node(n, r.entry.name, r.T) for n in r.site.graph.nodes if n.id not in r.entry.drop_objects]
+        nodes += room_nodes
+        # Each room is a region; its points are written contiguously, so the region is a slice of each cloud.
+        regions.append(region_from_points(r.entry.name, [maps[-1].points, raws[-1].points], [n.id for n in room_nodes],
+                                          (map_at, map_at + len(maps[-1])), (raw_at, raw_at + len(raws[-1]))))
+        map_at += len(maps[-1])
+        raw_at += len(raws[-1])
     manifest: dict[str, Any] = {
         key: first.manifest[key] for key in ("build_config",) if key in first.manifest
     }
+    manifest["regions"] = to_manifest(regions)
     manifest["inputs"] = {"composed": [{"name": r.entry.name, "bundle": r.entry.bundle, "site_id": r.site.site_id,
                                         "version": r.site.version, "T_building_room": r.entry.T_building_room,
                                         "drop_objects": list(r.entry.drop_objects)} for r in rooms]}

@@ -68,9 +68,22 @@ def draw_site_top_view(ax, site: Site, *, max_points: int = _MAX_DRAWN_POINTS, s
             if label_nodes:
                 ax.annotate(node.cls, node.centroid[:2], xytext=(4, 4), textcoords="offset points", fontsize=7,
                             zorder=5)
+    if len(site.regions) > 1:
+        _draw_regions(ax, site)
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
+
+
+def _draw_regions(ax, site: Site) -> None:
+    """Each region's box outline, named at its corner (a building's rooms)."""
+    from matplotlib.patches import Rectangle
+
+    for r in site.regions:
+        (x0, y0, _), (x1, y1, _) = r.bounds
+        ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, edgecolor="tab:blue", lw=0.9, zorder=6))
+        ax.annotate(r.id, (x0, y1), xytext=(2, -8), textcoords="offset points", fontsize=6, color="tab:blue",
+                    zorder=6)
 
 
 def render_site_png(site: Site, *, dpi: int = 150) -> bytes:
@@ -83,7 +96,8 @@ def render_site_png(site: Site, *, dpi: int = 150) -> bytes:
 
     fig = Figure(figsize=(8, 7))
     ax = fig.add_subplot(1, 1, 1)
-    draw_site_top_view(ax, site)
+    # A building's hundreds of class names would hide its rooms: nodes are named only in small sites.
+    draw_site_top_view(ax, site, label_nodes=len(site.regions) <= 4)
     n_cad = sum(1 for n in site.graph.nodes if n.source == "cad")
     n_auto = len(auto_cad_ids(site))
     ax.set_title(f"site {site.site_id} v{site.version}: {len(site.graph.nodes)} objects "
@@ -94,6 +108,8 @@ def render_site_png(site: Site, *, dpi: int = 150) -> bytes:
         Line2D([], [], marker="o", ls="", mfc="none", mec="k", label="cluster node"),
         Line2D([], [], marker=".", ls="", color="0.72", label="no class (wall, floor, ...)"),
     ]
+    if len(site.regions) > 1:
+        handles.append(Line2D([], [], color="tab:blue", lw=0.9, label=f"region ({len(site.regions)})"))
     if n_auto:
         handles.insert(1, Line2D([], [], marker=_AUTO_CAD_MARKER, ls="", mfc="w", mec="k",
                                  label="CAD node (auto-aligned)"))

@@ -1,0 +1,100 @@
+"""Per-region search structures of a site: what the refinement, the agreement score and the free-space check of
+one pose need, built for the region the pose looks into rather than for the whole building (DESIGN §1).
+
+A one-room site has one region and its structures are built once, up front, as before regions existed. A
+building's regions are built on first use and kept in a least-recently-used cache of `RegionConfig.max_cached`
+regions, so that a worker's memory is bounded by the cache, not by the building.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import LocalizeConfig
+from ..pointset import PointSet
+from ..site.bundle import Site
+from ..site.regions import Region
+from .refine import RefineMap
+from .score import ViewCheck
+
+
+@dataclass
+class RegionIndex:
+    """The refinement map and the free-space check of one region (map frame)."""
+
+    region: Region
+    refine_map: RefineMap
+    view_check: ViewCheck
+
+
+def region_cloud(site: Site, region: Region, which: str) -> PointSet:
+    """The points of `region` in the site's cloud `which` ("raw" | "enhanced" | "both", as `Site.cloud`)."""
+    enhanced = site.map.take(slice(*region.map_range))
+    raw = site.raw.take(slice(*region.raw_range))
+    if which == "enhanced" or len(site.raw) == 0:
+        return enhanced
+    return raw if which == "raw" else PointSet.concat([raw, enhanced])
+
+
+def build_index(site: Site, region: Region, config: LocalizeConfig) -> RegionIndex:
+    rc = config.refine
+    cloud = region_cloud(site, region, rc.map_points)
+    refine_map = RefineMap(cloud.points.astype(np.float64), cloud.rgb01(), cloud.class_index,
+                           fine_voxel_m=rc.fine_voxel_m, coarse_voxel_m=rc.coarse_voxel_m,
+                           color_scales_m=rc.color_scales_m, color_weight_m=rc.color_weight_m)
+    return RegionIndex(region, refine_map, ViewCheck(refine_map.xyz))
+
+
+class RegionMaps:
+    """The site's regions and their search structures.
+
+    `at(xyz)` is the index of the region a map point lies in (the nearest region's when it lies in none): a pose's
+    region is the one its region of interest's centre falls in.
+    """
+
+    def __init__(self, site: Site, config: LocalizeConfig) -> None:
+        self.site = site
+        self.config = config
+        self.regions = site.regions
+        self._lo = np.array([r.bounds[0] for r in self.regions])
+        self._hi = np.array([r.bounds[1] for r in self.regions])
+        self._cache: OrderedDict[str, RegionIndex] = OrderedDict()
+        self.built = 0  # regions built so far (a cache miss builds one)
+        if len(self.regions) == 1:
+            self.index(self.regions[0])
+
+    def __len__(self) -> int:
+        return len(self.regions)
+
+    def region_at(self, xyz: np.ndarray) -> Region:
+        """The region whose box holds the point xyz ((3,) map frame) seen from above; else the nearest box."""
+        if len(self.regions) == 1:
+            return self.regions[0]
+        p = np.asarray(xyz, dtype=np.float64)[:2]
+        # Horizontal distance from the point to each box (0 inside); ties (overlapping boxes) go to the box
+        # whose centre is nearest.
+        gap = np.maximum(np.maximum(self._lo[:, :2] - p, p - self._hi[:, :2]), 0.0)
+        centre = np.linalg.norm(0.5 * (self._lo[:, :2] + self._hi[:, :2]) - p, axis=1)
+        return self.regions[int(np.lexsort((centre, np.linalg.norm(gap, axis=1)))[0])]
+
+    def at(self, xyz: np.ndarray) -> RegionIndex:
+        return self.index(self.region_at(xyz))
+
+    def index(self, region: Region) -> RegionIndex:
+        """The structures of `region`, built on first use; the least recently used beyond the cache are dropped."""
+        found = self._cache.get(region.id)
+        if found is not None:
+            self._cache.move_to_end(region.id)
+            return found
+        found = self._cache[region.id] = build_index(self.site, region, self.config)
+        self.built += 1
+        while len(self._cache) > max(1, self.config.regions.max_cached):
+            self._cache.popitem(last=False)
+        return found
+
+    def cached(self) -> list[str]:
+        """Ids of the regions whose structures are held now, least recently used first."""
+        return list(self._cache)
