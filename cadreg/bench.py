@@ -18,6 +18,13 @@ Trust: per method the summary also gives `ok` precision (share of `ok` answers w
 wrong `ok` answers and success by confidence band (`CONFIDENCE_BANDS`, a reliability table: a calibrated
 confidence has success rising with the band). The baselines' confidence is their ICP fitness.
 
+Buildings (`cadreg render --layout` writes FRAMES/views.json): per frame the room it was taken in and the rooms
+that repeat it (the oracle of cadreg/render/building.py). With it the summary splits the frames: `unique` (views
+no other room repeats: success @5cm/5° is what counts) and `repeated` (the right answer is `ambiguous` with the
+truth among the reported poses — the answer and its `hypotheses`, by pose; `ok` in the right room is a lucky
+guess, `ok` elsewhere is wrong; `ok_twin_room` counts the wrong ones that are the same view in a room that repeats
+it).
+
 This module is a runner: it owns timing. It does no file I/O and prints nothing; the CLI does.
 """
 
@@ -61,6 +68,45 @@ class FrameOutcome:
     gt_fit_1cm: float = float("nan")  # ... within 1 cm at the ground truth
     est_fit_1cm: float = float("nan")  # ... within 1 cm at the estimate (nan without one)
     confidence: float = float("nan")  # the method's own confidence in its answer, [0, 1]
+    truth_in_hypotheses: bool = False  # a reported pose (the answer or a hypothesis) within 5 cm / 5° of the truth
+    repeated: bool | None = None  # another room repeats the view (views.json); None = not known
+    twin_answer: bool = False  # the answer is the same view in a room that repeats it (within 5 cm / 5° of it)
+    T_answer: np.ndarray | None = field(default=None, repr=False)  # (4, 4) the answered T_map_camera, or None
+
+
+@dataclass(frozen=True)
+class ViewTruth:
+    """What a building's views.json says of one frame: the room it was taken in, the rooms that repeat it, and
+    T_twins : (4, 4) T_building_camera of the same room-relative view in each of those rooms (same order)."""
+
+    room: str
+    repeated_in: tuple[str, ...] = ()
+    T_twins: tuple[np.ndarray, ...] = ()
+
+    @property
+    def repeated(self) -> bool:
+        return bool(self.repeated_in)
+
+
+def views_from_doc(doc: dict) -> dict[int, ViewTruth]:
+    """Frame index -> ViewTruth from the parsed views.json of `cadreg render --layout` ({"rooms": {name:
+    {"T_building_room"}}, "views": [{"index", "room", "repeated_in", "T_room_camera"}]}); InvalidArgument when
+    malformed."""
+    try:
+        T_room = {name: np.asarray(r["T_building_room"], dtype=np.float64) for name, r in doc["rooms"].items()}
+        out = {}
+        for v in doc["views"]:
+            T_room_camera = np.asarray(v["T_room_camera"], dtype=np.float64)
+            twins = tuple(str(name) for name in v["repeated_in"])
+            out[int(v["index"])] = ViewTruth(str(v["room"]), twins, tuple(T_room[t] @ T_room_camera for t in twins))
+        return out
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InvalidArgument(f"not a views.json of `cadreg render --layout`: {exc!r}") from None
+
+
+def within_5cm_5deg(T_est: np.ndarray, T_true: np.ndarray) -> bool:
+    te, re_ = pose_errors(np.asarray(T_est), T_true)
+    return te <= 0.05 and re_ <= 5.0
 
 
 def check_method(name: str) -> str:
@@ -125,6 +171,7 @@ class Bench:
         t0 = time.perf_counter()
         stage_ms: dict[str, float] = {}
         trust = float("nan")
+        reported: list[np.ndarray] = []  # the answer and every hypothesis, by pose
         if method == "kiss-matcher":
             self.kiss()  # the map side is prepared once, outside the frame's time, as fpfh-ransac's features are
             t0 = time.perf_counter()
@@ -134,6 +181,7 @@ class Bench:
             res = loc.localize(f, method=refine)
             T, status, stage_ms = res.T_map_camera, res.status.value, dict(res.diagnostics.stage_ms)
             trust = float(res.confidence)
+            reported = [h.T_map_camera for h in res.hypotheses if h.T_map_camera is not None]
         elif method in ("fpfh-ransac", "kiss-matcher"):
             pts = frame_to_points(frame, pixel_stride=loc.config.frame.pixel_stride)
             T, _ = (loc.fpfh() if method == "fpfh-ransac" else self.kiss()).register(pts.xyz)
@@ -159,7 +207,11 @@ class Bench:
             te, re_ = float("inf"), float("inf")
         else:
             te, re_ = pose_errors(np.asarray(T), T_true)
-        out = FrameOutcome(index, status, te, re_, total_ms, stage_ms, confidence=trust)
+        if T is not None:
+            reported.insert(0, np.asarray(T))
+        out = FrameOutcome(index, status, te, re_, total_ms, stage_ms, confidence=trust,
+                           truth_in_hypotheses=any(within_5cm_5deg(P, T_true) for P in reported),
+                           T_answer=None if T is None else np.asarray(T))
         if T is not None:
             out.est_fit_1cm = self.fit_1cm(frame, np.asarray(T))
         return out
@@ -189,8 +241,38 @@ def _stat(values: Iterable[float], q: float) -> float | None:
     return x if x < 1e250 else None
 
 
+def building_summary(outcomes: list[FrameOutcome], s5: np.ndarray) -> dict:
+    """`unique` and `repeated` figures of the frames views.json knows (s5: (n,) bool success @5cm/5° per outcome).
+
+    unique : frames, success_5cm_5deg, ok_precision, ok_wrong.
+    repeated : frames, ambiguous (share answered `ambiguous`), ambiguous_with_truth (share answered `ambiguous`
+        with a reported pose within 5 cm / 5° of the truth), ok_right_room (ok answers within 5 cm / 5°), ok_wrong
+        (the other ok answers), ok_twin_room (of those, the same view in a room that repeats it).
+    A bucket without frames has frames 0 and null shares.
+    """
+    ok = np.array([o.status == Status.OK.value for o in outcomes], dtype=bool)
+    amb = np.array([o.status == Status.AMBIGUOUS.value for o in outcomes], dtype=bool)
+    truth = np.array([o.truth_in_hypotheses for o in outcomes], dtype=bool)
+    twin = np.array([o.twin_answer for o in outcomes], dtype=bool)
+    uniq = np.array([o.repeated is False for o in outcomes], dtype=bool)
+    rep = np.array([o.repeated is True for o in outcomes], dtype=bool)
+
+    def share(x: np.ndarray, sel: np.ndarray) -> float | None:
+        return float(x[sel].mean()) if sel.any() else None
+
+    return {
+        "unique": {"frames": int(uniq.sum()), "success_5cm_5deg": share(s5, uniq),
+                   "ok_precision": share(s5, uniq & ok), "ok_wrong": int((uniq & ok & ~s5).sum())},
+        "repeated": {"frames": int(rep.sum()), "ambiguous": share(amb, rep),
+                     "ambiguous_with_truth": share(amb & truth, rep),
+                     "ok_right_room": int((rep & ok & s5).sum()), "ok_wrong": int((rep & ok & ~s5).sum()),
+                     "ok_twin_room": int((rep & ok & ~s5 & twin).sum())},
+    }
+
+
 def summarize(outcomes: list[FrameOutcome]) -> dict:
-    """Summary of one method (DESIGN §8 keys, plus breakdowns)."""
+    """Summary of one method (DESIGN §8 keys, plus breakdowns; `unique` / `repeated` when some outcome knows
+    whether another room repeats its view)."""
     n = len(outcomes)
     te = np.array([o.translation_m for o in outcomes])
     re_ = np.array([o.rotation_deg for o in outcomes])
@@ -224,7 +306,7 @@ def summarize(outcomes: list[FrameOutcome]) -> dict:
         if sel.any():
             reliability[f"{lo:.1f}-{min(hi, 1.0):.1f}"] = {"frames": int(sel.sum()), "success_5cm_5deg": float(s5[sel].mean()),
                                                           "ok": int((sel & ok).sum())}
-    return {
+    out = {
         "frames": n,
         "success_5cm_5deg": float(s5.mean()) if n else 0.0,
         "success_10cm_10deg": float(s10.mean()) if n else 0.0,
@@ -250,12 +332,16 @@ def summarize(outcomes: list[FrameOutcome]) -> dict:
         "gt_fits_worse_frames": gt_worse,
         "failed_frames": [o.index for o, ok in zip(outcomes, s5) if not ok],
     }
+    if any(o.repeated is not None for o in outcomes):
+        out.update(building_summary(outcomes, s5))
+    return out
 
 
 def run_bench(site, frames, methods: list[str], *, localizer: Localizer | None = None, limit: int | None = None,
               seed: int = 0, progress: Callable[[int, int], None] | None = None,
-              warn: Callable[[str], None] | None = None) -> dict:
-    """Run `methods` on every frame of `frames` (a RecordedFrames) that has a ground-truth pose.
+              warn: Callable[[str], None] | None = None, views: dict[int, ViewTruth] | None = None) -> dict:
+    """Run `methods` on every frame of `frames` (a RecordedFrames) that has a ground-truth pose. `views`: what a
+    building's views.json says of the frames (`views_from_doc`), for the unique / repeated figures.
 
     Returns {"frames": N, "skipped": [...], "methods": {name: summary}}.
     """
@@ -282,6 +368,10 @@ def run_bench(site, frames, methods: list[str], *, localizer: Localizer | None =
             for m in methods:
                 o = bench.run_one(m, int(i), frame, T_true)
                 o.objects_in_view, o.gt_overlap, o.gt_fit_1cm = n_obj, overlap, gt_fit
+                if views is not None and int(i) in views:
+                    truth = views[int(i)]
+                    o.repeated = truth.repeated
+                    o.twin_answer = o.T_answer is not None and any(within_5cm_5deg(o.T_answer, T) for T in truth.T_twins)
                 outcomes[m].append(o)
         if progress:
             progress(k + 1, len(indices))
@@ -322,6 +412,13 @@ def format_table(report: dict) -> str:
             parts = " ".join(f"[{k}] {100 * v['success_5cm_5deg']:.0f}% of {v['frames']} ({v['ok']} ok)"
                              for k, v in s["reliability"].items())
             lines.append(f"  {name} @5cm/5° by confidence: {parts}")
+        if s.get("unique") is not None:
+            u, r = s["unique"], s["repeated"]
+            lines.append(f"  {name} unique views: {u['frames']}, @5cm/5° {f(u['success_5cm_5deg'], 100)}%, ok precision "
+                         f"{f(u['ok_precision'], 100)}%, wrong ok {u['ok_wrong']}; repeated views: {r['frames']}, "
+                         f"ambiguous {f(r['ambiguous'], 100)}%, ambiguous with the truth among hypotheses "
+                         f"{f(r['ambiguous_with_truth'], 100)}%, ok right room {r['ok_right_room']}, ok wrong "
+                         f"{r['ok_wrong']} (same view in a twin room {r['ok_twin_room']})")
         if s.get("gt_fits_worse"):
             lines.append(f"  {name}: {s['gt_fits_worse']} failed frames fit the map better at the estimate than "
                          f"at their ground truth (1 cm inliers)")

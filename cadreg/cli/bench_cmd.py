@@ -1,4 +1,5 @@
-"""`cadreg bench`: several methods on the same recorded frames, with a summary table and optional JSON."""
+"""`cadreg bench`: several methods on the same recorded frames, with a summary table and optional JSON. A building's
+frames (`cadreg render --layout`) carry FRAMES/views.json: then the summary also splits unique and repeated views."""
 
 from __future__ import annotations
 
@@ -33,6 +34,20 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def read_views(frames_dir: Path):
+    """Frame index -> ViewTruth from FRAMES/views.json, or None when the folder has none."""
+    from ..bench import views_from_doc
+    from ..errors import InvalidArgument, InvalidFileError
+
+    path = frames_dir / "views.json"
+    if not path.is_file():
+        return None
+    try:
+        return views_from_doc(json.loads(path.read_text(encoding="utf-8")))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, InvalidArgument) as exc:
+        raise InvalidFileError(path, str(exc)) from None
+
+
 def run(args: argparse.Namespace) -> int:
     from ..bench import format_table, run_bench
     from ..io.frames import RecordedFrames
@@ -61,8 +76,9 @@ def run(args: argparse.Namespace) -> int:
     def progress(done: int, total: int) -> None:
         bar.update(done - bar.n)
 
+    views = read_views(args.frames)
     report = run_bench(site, frames, methods, localizer=localizer, limit=args.limit, seed=args.seed,
-                       progress=progress, warn=log.warning)
+                       progress=progress, warn=log.warning, views=views)
     bar.close()
     print(format_table(report))
     if args.json:

@@ -1,10 +1,15 @@
-"""`cadreg site compose LAYOUT.json --out SITE`: one building site from room bundles (cadreg/site/compose.py)."""
+"""`cadreg site compose LAYOUT.json --out SITE`: one building site from room bundles (cadreg/site/compose.py), and
+`cadreg site layout --room NAME=BUNDLE ... --rooms N --site-id ID --out LAYOUT.json`: a benchmark building's layout
+(cadreg/site/layout.py)."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
+
+from ..errors import ConfigError
 
 
 def _compose(args: argparse.Namespace) -> int:
@@ -20,6 +25,48 @@ def _compose(args: argparse.Namespace) -> int:
     return 0
 
 
+def _room_arg(text: str) -> tuple[str, Path]:
+    name, sep, path = text.partition("=")
+    if not sep or not name or not path:
+        raise argparse.ArgumentTypeError(f"--room takes NAME=BUNDLE_DIR, got {text!r}")
+    return name, Path(path)
+
+
+def _layout_json(doc: dict) -> str:
+    """The layout as JSON with one room per line (diffable, and readable at 100 rooms)."""
+    rooms = ",\n  ".join(json.dumps(r) for r in doc["rooms"])
+    head = json.dumps({k: v for k, v in doc.items() if k != "rooms"})[:-1]
+    return f"{head}, \"rooms\": [\n  {rooms}\n]}}\n"
+
+
+def _layout(args: argparse.Namespace) -> int:
+    from ..site.bundle import Site
+    from ..site.layout import LayoutConfig, RoomSource, generate_layout, grid_shape
+
+    try:
+        config = LayoutConfig(site_id=args.site_id, rooms=args.rooms, gap_m=args.gap_m, drop_prob=args.drop_prob,
+                              seed=args.seed)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from exc
+    names = [name for name, _ in args.room]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"--room names must be distinct, got {names}")
+    out = args.out
+    # compose reads bundle paths relative to the layout file: write them so.
+    sources = [RoomSource.from_site(name, os.path.relpath(path.resolve(), out.resolve().parent), Site.load(path))
+               for name, path in args.room]
+    layout = generate_layout(sources, config)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(_layout_json(layout.model_dump()))
+    cols, rows = grid_shape(config.rooms)
+    dropped = sum(len(r.drop_objects) for r in layout.rooms)
+    cad = sum(len(sources[k % len(sources)].cad_ids) for k in range(config.rooms))
+    print(json.dumps({"site_id": layout.site_id, "rooms": len(layout.rooms), "grid": [cols, rows],
+                      "sources": {s.name: s.bundle for s in sources}, "cad_objects": cad, "dropped": dropped,
+                      "seed": config.seed, "out": str(out)}))
+    return 0
+
+
 def register_site_compose(site_sub: argparse._SubParsersAction) -> None:
     c = site_sub.add_parser(
         "compose", help="compose a multi-room site from room bundles placed by a layout",
@@ -29,6 +76,21 @@ def register_site_compose(site_sub: argparse._SubParsersAction) -> None:
     c.add_argument("layout", type=Path, help="layout JSON file")
     c.add_argument("--out", required=True, type=Path, help="bundle directory to write")
     c.set_defaults(func=_compose)
+    g = site_sub.add_parser(
+        "layout", help="generate a benchmark building's LAYOUT.json: copies of room bundles on a grid",
+        description="Rooms r000, r001, ... on a near-square grid, each a copy of a --room bundle (cycled), turned "
+                    "about z by a random multiple of 90 degrees about its footprint centre, footprints --gap-m "
+                    "apart, each CAD object dropped with probability --drop-prob. Deterministic per --seed.",
+    )
+    g.add_argument("--room", action="append", required=True, type=_room_arg, metavar="NAME=BUNDLE_DIR",
+                   help="a room bundle to copy (repeatable)")
+    g.add_argument("--rooms", type=int, required=True, help="number of rooms")
+    g.add_argument("--gap-m", type=float, default=0.6, help="gap between neighbouring footprints, metres")
+    g.add_argument("--drop-prob", type=float, default=0.35, help="probability of dropping each CAD object of a copy")
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--site-id", required=True, help="site id of the building")
+    g.add_argument("--out", required=True, type=Path, help="layout JSON to write (bundle paths relative to it)")
+    g.set_defaults(func=_layout)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

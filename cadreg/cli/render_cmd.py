@@ -1,4 +1,6 @@
-"""`cadreg render`: rendered query frames (depth, colour, labels, poses) from a labelled mesh or a site's mesh."""
+"""`cadreg render`: rendered query frames (depth, colour, labels, poses) from a labelled mesh, a site's mesh, or the
+rooms of a building layout (`--layout`, cadreg/render/building.py: views inside the rooms + views.json with the
+repeated-view oracle)."""
 
 from __future__ import annotations
 
@@ -20,13 +22,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "render",
         help="render RGB-D query frames from a labelled mesh",
         description="Ray-cast depth, colour and labels at hand-held camera poses inside the room (or at --poses) and "
-                    "write a recorded-frames folder (ScanNet layout, pose/<i>.txt = T_map_camera).",
+                    "write a recorded-frames folder (ScanNet layout, pose/<i>.txt = T_map_camera). With --layout: "
+                    "views inside the rooms of a building (pose = T_building_camera) and FRAMES/views.json saying "
+                    "which other rooms repeat each view.",
     )
-    src = p.add_mutually_exclusive_group(required=True)
+    src = p.add_mutually_exclusive_group()
     src.add_argument("--site", type=Path, help="site bundle: renders the scan mesh it was built from (site.json "
                      "inputs), or a Poisson mesh of its points when that mesh is not at hand")
     src.add_argument("--mesh", type=Path, help="coloured mesh PLY (z up, metres)")
     p.add_argument("--labels", type=Path, help="PLY with the same vertices and a per-vertex 'label' (NYU40)")
+    p.add_argument("--layout", type=Path, help="building LAYOUT.json (`cadreg site layout`): render inside its rooms; "
+                   "--mesh/--labels is every room's mesh (default: the scan each room bundle was built from)")
+    p.add_argument("--oracle-agreement", type=float, default=None,
+                   help="with --layout: share of agreeing pixels that makes a view repeated (default 0.97)")
     p.add_argument("--out", type=Path, required=True, help="frames folder to write")
     p.add_argument("--n", type=int, default=0, help="number of frames (default: all --poses)")
     p.add_argument("--seed", type=int, default=0)
@@ -102,6 +110,10 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(str(exc)) from exc
     if config.height_min_m > config.height_max_m or config.pitch_min_deg > config.pitch_max_deg:
         raise ConfigError("--height and --pitch take MIN MAX with MIN <= MAX")
+    if args.layout is not None:
+        return _render_layout(args, config)
+    if args.site is None and args.mesh is None:
+        raise ConfigError("give one of --site, --mesh or --layout")
     if args.site is not None:
         mesh, mesh_desc = load_site_mesh(args.site)
     else:
@@ -126,6 +138,63 @@ def run(args: argparse.Namespace) -> int:
         "frames": len(frames), "out": str(args.out), "mesh": mesh_desc,
         "visible_objects": {"min": min(vis), "mean": round(sum(vis) / len(vis), 2), "max": max(vis)},
     }))
+    return 0
+
+
+def _layout_meshes(args: argparse.Namespace, layout) -> tuple[dict, dict, dict[str, str]]:
+    """Per bundle string of the layout: (LabelledMesh, graph nodes, mesh description)."""
+    from ..render import LabelledMesh
+    from ..site.bundle import Site
+
+    bundles = sorted({r.bundle for r in layout.rooms})
+    if args.mesh is not None and len(bundles) > 1:
+        raise ConfigError(f"--mesh gives one mesh but the layout has {len(bundles)} room bundles: leave --mesh out "
+                          "to render each bundle's own scan")
+    meshes, nodes, desc = {}, {}, {}
+    for bundle in bundles:
+        bundle_dir = args.layout.parent / bundle
+        nodes[bundle] = Site.load(bundle_dir).graph.nodes
+        if args.mesh is not None:
+            meshes[bundle], desc[bundle] = LabelledMesh.from_ply(args.mesh, args.labels), str(args.mesh)
+        else:
+            meshes[bundle], desc[bundle] = load_site_mesh(bundle_dir)
+    return meshes, nodes, desc
+
+
+def _render_layout(args: argparse.Namespace, config) -> int:
+    """`render --layout`: views inside the building's rooms, and views.json (written here, not in the core)."""
+    import time
+
+    from ..render.building import OracleConfig, building_rooms, render_building_views
+    from ..site.compose import read_layout
+
+    if args.site is not None or args.poses is not None:
+        raise ConfigError("--layout renders sampled views inside its rooms: no --site or --poses with it")
+    if args.n <= 0:
+        raise ConfigError("--n must be positive")
+    try:
+        oracle = OracleConfig() if args.oracle_agreement is None else OracleConfig(min_agreement=args.oracle_agreement)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from exc
+    t0 = time.perf_counter()
+    layout = read_layout(args.layout)
+    meshes, nodes, desc = _layout_meshes(args, layout)
+    rooms = building_rooms(layout, meshes, nodes)
+    with tqdm(total=args.n, desc="render", unit="frame") as bar:
+        def progress(done: int, total: int) -> None:
+            bar.update(done - bar.n)
+
+        views = render_building_views(rooms, args.out, args.n, seed=args.seed, config=config,
+                                      noise=None if args.no_noise else NoiseConfig(), oracle=oracle, progress=progress)
+    doc = {"site_id": layout.site_id, "layout": str(args.layout.resolve()), "seed": args.seed,
+           "oracle": oracle.model_dump(),
+           "rooms": {r.name: {"bundle": r.bundle, "T_building_room": r.T_building_room.tolist()} for r in rooms},
+           "views": [v.to_dict() for v in views]}
+    (args.out / "views.json").write_text(json.dumps(doc))
+    repeated = sum(bool(v.repeated_in) for v in views)
+    print(json.dumps({"frames": len(views), "out": str(args.out), "rooms": len(rooms),
+                      "rooms_seen": len({v.room for v in views}), "repeated": repeated, "unique": len(views) - repeated,
+                      "mesh": sorted(set(desc.values())), "elapsed_s": round(time.perf_counter() - t0, 1)}))
     return 0
 
 

@@ -1,0 +1,292 @@
+"""Query views inside the rooms of a composed building, with the repeated-view oracle.
+
+The building mesh is each room's labelled mesh copied into the building frame by its `T_building_room`, with the
+faces of the room's dropped objects removed: a face goes when one of its vertices lies inside a dropped node's
+oriented box grown by `compose.DROP_MARGIN_M` (the room bundle's node boxes, room frame; the rule compose applies
+to the map's points). Views are drawn as follows: a room uniformly (seeded), a camera pose in it by `PoseSampler`
+on the room's own mesh (room frame, the room's drops removed), then `T_building_camera = T_building_room ·
+T_room_camera` rendered on the whole building mesh (a neighbouring room can show over a low wall or through a gap)
+with the usual noise, and judged by RenderConfig's valid-depth and visible-object thresholds.
+
+**Oracle.** A view of room i is *repeated* in room j (j ≠ i, made from the same bundle) when the building rendered
+at `T_building_room_j · T_room_camera` shows the same depth and labels as at `T_building_room_i · T_room_camera`:
+both are cast noiselessly at a reduced resolution (OracleConfig, 160×120), and the agreement is the share of
+pixels, among those valid (a surface within the sensor's range) in either cast, that are valid in both with depth
+within `depth_tol_m` and the same label. The view is repeated in j when the agreement is ≥ `min_agreement`.
+Copies with the same drops and the same surroundings agree to float rounding (≈ 1.0); a dropped chair or a
+different neighbour over the wall takes several per cent of the pixels. Every other room of the same bundle is
+cast (no pruning): the cost is (rooms of the bundle − 1) casts of 19 200 rays per view, ~5 ms each at 100 rooms.
+
+    OracleConfig                              resolution, depth tolerance, agreement threshold
+    room_copy_mesh(mesh, dropped_nodes)       a room's mesh without its dropped objects (room frame)
+    BuildingRoom, building_rooms(layout, ...) the layout's rooms with their meshes and transforms
+    building_mesh(rooms)                      the whole building's LabelledMesh (building frame)
+    RepeatOracle                              agreement / repeated_in of a room-relative view
+    render_building_views(rooms, out_dir, n)  a recorded-frames folder of views + their BuildingView records
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from ..camera import CameraIntrinsics
+from ..config import NoiseConfig, RenderConfig
+from ..errors import ConfigError, InvalidFrame
+from ..geometry import transform_points
+from ..io.frames import FramesWriter
+from ..site.compose import DROP_MARGIN_M, Layout
+from ..site.graph import ObjectNode
+from .mesh import LabelledMesh
+from .poses import PoseSampler
+from .raycast import MeshRenderer, View, camera_rig
+from .sequence import count_visible_objects
+
+
+class OracleConfig(BaseModel):
+    """The repeated-view oracle: a noiseless cast at width × height, depth tolerance (metres), agreement
+    threshold (share of the pixels valid in either cast)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    width: int = Field(160, gt=0)
+    height: int = Field(120, gt=0)
+    depth_tol_m: float = Field(0.02, gt=0)
+    # Twins agree to float rounding (≥ 0.999 measured); the smallest thing that makes a view distinct, the bin
+    # (0.43 × 0.36 m) seen whole from 2–3 m, covers ~1–3 % of the image: 0.97 calls views that differ by less
+    # than about one small object "repeated".
+    min_agreement: float = Field(0.97, gt=0, le=1)
+
+
+def inside_boxes(xyz: np.ndarray, nodes: list[ObjectNode], margin_m: float = DROP_MARGIN_M) -> np.ndarray:
+    """(n,) bool: points (n, 3, room frame) inside any node's oriented box grown by `margin_m`."""
+    inside = np.zeros(len(xyz), dtype=bool)
+    for node in nodes:
+        local = (xyz - node.box_center) @ node.box_R
+        inside |= np.all(np.abs(local) <= node.box_extent / 2 + margin_m, axis=1)
+    return inside
+
+
+def room_copy_mesh(mesh: LabelledMesh, dropped: list[ObjectNode]) -> LabelledMesh:
+    """The room's mesh (room frame) without the faces that touch a dropped node's grown box; vertices are kept
+    (unreferenced ones are harmless), so labels and instances keep their indices."""
+    if not dropped:
+        return mesh
+    gone = inside_boxes(mesh.vertices, dropped)
+    faces = mesh.faces[~np.any(gone[mesh.faces], axis=1)]
+    return LabelledMesh(mesh.vertices, faces, mesh.colors, mesh.labels, mesh.label_set, mesh.instances)
+
+
+@dataclass
+class BuildingRoom:
+    """One room of the building: name, bundle (as in the layout), T_building_room (4, 4) room -> building,
+    mesh : its copy's LabelledMesh in the room frame (dropped objects removed)."""
+
+    name: str
+    bundle: str
+    T_building_room: np.ndarray
+    mesh: LabelledMesh
+
+
+def building_rooms(layout: Layout, meshes: dict[str, LabelledMesh],
+                   nodes: dict[str, list[ObjectNode]]) -> list[BuildingRoom]:
+    """The rooms of `layout`; `meshes` and `nodes` give, per bundle string of the layout, the room's labelled mesh
+    and its graph nodes (room frame). ConfigError for a dropped id the bundle's graph does not have."""
+    rooms = []
+    for entry in layout.rooms:
+        by_id = {n.id: n for n in nodes[entry.bundle]}
+        unknown = sorted(set(entry.drop_objects) - set(by_id))
+        if unknown:
+            raise ConfigError(f"room {entry.name!r}: no object {unknown} to drop in {entry.bundle}")
+        mesh = room_copy_mesh(meshes[entry.bundle], [by_id[i] for i in entry.drop_objects])
+        rooms.append(BuildingRoom(entry.name, entry.bundle, np.asarray(entry.T_building_room, dtype=np.float64), mesh))
+    return rooms
+
+
+def building_mesh(rooms: list[BuildingRoom]) -> LabelledMesh:
+    """All rooms' meshes in the building frame as one LabelledMesh; instance ids offset per room so that they stay
+    distinct (−1 stays −1). Rooms must share a label set, and all carry labels or none do."""
+    label_sets = {r.mesh.label_set for r in rooms}
+    if len(label_sets) > 1:
+        raise ConfigError(f"rooms of one building must share a label set, got {sorted(label_sets)}")
+    if len({r.mesh.labels is None for r in rooms}) > 1:
+        raise ConfigError("some room meshes carry labels and others do not")
+    vertices, faces, colors, labels, instances = [], [], [], [], []
+    v_offset = i_offset = 0
+    for r in rooms:
+        m = r.mesh
+        vertices.append(transform_points(r.T_building_room, m.vertices))
+        faces.append(m.faces.astype(np.int64) + v_offset)
+        colors.append(m.colors)
+        if m.labels is not None:
+            labels.append(m.labels)
+        if m.instances is not None:
+            instances.append(np.where(m.instances >= 0, m.instances + i_offset, -1))
+            i_offset += m.n_instances
+        v_offset += len(m.vertices)
+    return LabelledMesh(
+        np.concatenate(vertices), np.concatenate(faces), np.concatenate(colors),
+        np.concatenate(labels) if labels else None, label_sets.pop(),
+        np.concatenate(instances) if len(instances) == len(rooms) else None,
+    )
+
+
+def view_agreement(a: View, b: View, *, depth_tol_m: float, min_depth_m: float, max_depth_m: float) -> float:
+    """Share of the pixels valid in either view (a surface in [min_depth_m, max_depth_m]) that are valid in both
+    with |depth difference| ≤ depth_tol_m and equal labels (labels ignored when the views carry none); 0 when no
+    pixel is valid."""
+    va = np.isfinite(a.depth_m) & (a.depth_m >= min_depth_m) & (a.depth_m <= max_depth_m)
+    vb = np.isfinite(b.depth_m) & (b.depth_m >= min_depth_m) & (b.depth_m <= max_depth_m)
+    either = va | vb
+    if not either.any():
+        return 0.0
+    both = va & vb
+    same = np.zeros_like(both)
+    same[both] = np.abs(a.depth_m[both] - b.depth_m[both]) <= depth_tol_m
+    if a.labels is not None and b.labels is not None:
+        same &= a.labels == b.labels
+    return float(same.sum() / either.sum())
+
+
+class RepeatOracle:
+    """Which other rooms show a room-relative view as it is seen in its own room (module docstring)."""
+
+    def __init__(self, renderer: MeshRenderer, rooms: list[BuildingRoom], depth_intr: CameraIntrinsics,
+                 T_color_depth: np.ndarray, *, config: OracleConfig = OracleConfig(),
+                 noise: NoiseConfig = NoiseConfig()) -> None:
+        self.renderer = renderer
+        self.rooms = rooms
+        self.intr = depth_intr.scaled_to(config.width, config.height)
+        self.T_color_depth = T_color_depth
+        self.config = config
+        self.noise = noise
+
+    def cast(self, room: int, T_room_camera: np.ndarray) -> View:
+        """Noiseless low-resolution depth-camera cast of the building at room `room`'s copy of the view."""
+        T_building_depth = self.rooms[room].T_building_room @ T_room_camera @ self.T_color_depth
+        return self.renderer.cast(self.intr, T_building_depth, with_color=True)
+
+    def agreements(self, room: int, T_room_camera: np.ndarray) -> dict[str, float]:
+        """Agreement of the view with its copy in every other room of the same bundle, by room name."""
+        reference = self.cast(room, T_room_camera)
+        out = {}
+        for j, other in enumerate(self.rooms):
+            if j == room or other.bundle != self.rooms[room].bundle:
+                continue
+            out[other.name] = view_agreement(reference, self.cast(j, T_room_camera),
+                                             depth_tol_m=self.config.depth_tol_m,
+                                             min_depth_m=self.noise.min_depth_m, max_depth_m=self.noise.max_depth_m)
+        return out
+
+    def repeated_in(self, room: int, T_room_camera: np.ndarray) -> list[str]:
+        """Names of the rooms that repeat the view (agreement ≥ min_agreement), in layout order."""
+        return [name for name, a in self.agreements(room, T_room_camera).items() if a >= self.config.min_agreement]
+
+
+@dataclass
+class BuildingView:
+    """One rendered view: index in the frames folder, room name, T_room_camera and T_building_camera (4, 4,
+    colour camera -> room / building), repeated_in (rooms that repeat it), agreement (by room of the same bundle)."""
+
+    index: int
+    room: str
+    T_room_camera: np.ndarray
+    T_building_camera: np.ndarray
+    repeated_in: list[str]
+    agreement: dict[str, float]
+
+    def to_dict(self) -> dict:
+        """The views.json record."""
+        return {"index": self.index, "room": self.room, "repeated": bool(self.repeated_in),
+                "repeated_in": list(self.repeated_in), "T_room_camera": self.T_room_camera.tolist(),
+                "agreement": {k: round(v, 4) for k, v in self.agreement.items()}}
+
+
+class _RoomSamplers:
+    """PoseSamplers on room meshes, built when first needed; the last few are kept (a renderer per room of a large
+    building would hold every room's ray-casting structure)."""
+
+    def __init__(self, rooms: list[BuildingRoom], config: RenderConfig, keep: int = 8) -> None:
+        self.rooms, self.config, self.keep = rooms, config, keep
+        self._cache: OrderedDict[int, PoseSampler] = OrderedDict()
+
+    def __getitem__(self, room: int) -> PoseSampler:
+        if room not in self._cache:
+            self._cache[room] = PoseSampler(MeshRenderer(self.rooms[room].mesh), self.config)
+            while len(self._cache) > self.keep:
+                self._cache.popitem(last=False)
+        self._cache.move_to_end(room)
+        return self._cache[room]
+
+
+def render_building_views(
+    rooms: list[BuildingRoom],
+    out_dir: str | Path,
+    n: int,
+    *,
+    seed: int = 0,
+    config: RenderConfig = RenderConfig(),
+    noise: NoiseConfig | None = NoiseConfig(),
+    oracle: OracleConfig = OracleConfig(),
+    progress: Callable[[int, int], None] | None = None,
+) -> list[BuildingView]:
+    """Render `n` views inside the rooms into `out_dir` (DESIGN §4 layout, pose/<i>.txt = T_building_camera) and
+    return their records (the caller writes views.json). Deterministic for a seed; noise None = noiseless."""
+    if n <= 0:
+        raise ConfigError(f"number of frames must be positive, got {n}")
+    mesh = building_mesh(rooms)
+    if config.min_visible_objects > 0 and mesh.labels is None:
+        raise ConfigError("min_visible_objects > 0 needs room meshes with per-vertex labels (or set it to 0)")
+    depth_intr, color_intr, T_color_depth = camera_rig(config)
+    renderer = MeshRenderer(mesh)
+    repeat = RepeatOracle(renderer, rooms, depth_intr, T_color_depth, config=oracle, noise=noise or NoiseConfig())
+    samplers = _RoomSamplers(rooms, config)
+    writer = FramesWriter(out_dir, depth_intr, color_intr, T_color_depth, depth_scale=1000.0,
+                          label_set=mesh.label_set, color_format=config.color_format)
+    rng = np.random.default_rng(seed)
+    out: list[BuildingView] = []
+    while len(out) < n:
+        i = len(out)
+        room = int(rng.integers(len(rooms)))
+        T_room_camera, frame = _draw_view(rooms[room], samplers[room], renderer, rng, config, noise, i)
+        T_building_camera = rooms[room].T_building_room @ T_room_camera
+        writer.write(i, frame, T_building_camera)
+        agreement = repeat.agreements(room, T_room_camera)
+        repeated = [name for name, a in agreement.items() if a >= oracle.min_agreement]
+        out.append(BuildingView(i, rooms[room].name, T_room_camera, T_building_camera, repeated, agreement))
+        if progress is not None:
+            progress(len(out), n)
+    return out
+
+
+def _draw_view(room: BuildingRoom, sampler: PoseSampler, renderer: MeshRenderer, rng: np.random.Generator,
+               config: RenderConfig, noise: NoiseConfig | None, index: int):
+    """(T_room_camera, Frame) of the first sampled pose in `room` whose building view passes the config's
+    valid-depth and visible-object thresholds; ConfigError after `max_attempts_per_frame` failures."""
+    depth_intr, color_intr, T_color_depth = camera_rig(config)
+    min_z = noise.min_depth_m if noise is not None else 0.0
+    max_z = noise.max_depth_m if noise is not None else np.inf
+    for _ in range(config.max_attempts_per_frame):
+        T_room_camera = sampler.sample(rng)
+        if T_room_camera is None:
+            raise ConfigError(f"no camera position inside room {room.name!r} passes the height/clearance checks")
+        T_building_camera = room.T_building_room @ T_room_camera
+        dview = renderer.cast(depth_intr, T_building_camera @ T_color_depth, with_color=True)
+        z = dview.depth_m
+        if (float(np.mean(np.isfinite(z) & (z >= min_z) & (z <= max_z))) < config.min_valid_fraction
+                or count_visible_objects(dview, config.min_object_fraction) < config.min_visible_objects):
+            continue
+        try:
+            frame, _, _ = renderer.render_frame(T_building_camera, depth_intr, color_intr, T_color_depth, rng=rng,
+                                                noise=noise, frame_id=str(index), depth_view=dview)
+        except InvalidFrame:  # noise left no depth: draw again
+            continue
+        return T_room_camera, frame
+    raise ConfigError(f"{config.max_attempts_per_frame} sampled views in room {room.name!r} failed (valid depth >= "
+                      f"{config.min_valid_fraction}, >= {config.min_visible_objects} visible objects): relax the "
+                      "render settings")

@@ -1,0 +1,151 @@
+"""Generate a building layout (LAYOUT.json for `cadreg site compose`) from room bundles: a benchmark building.
+
+Rooms r000, r001, ... fill a near-square grid (ceil(sqrt(N)) columns, row by row). Room k is a copy of source
+bundle k mod len(sources) (cycled, so every source appears as evenly as the count allows), turned about z by a
+random multiple of 90° about the centre of its footprint (the xy box of the bundle's raw points, room frame), and
+placed so that, after turning:
+
+- within a row, each room's footprint starts exactly `gap_m` after its left neighbour's ends (x);
+- each row's band (the tallest footprint of the row) starts exactly `gap_m` after the band of the row below (y);
+  a room lower than its row's band sits at the band's bottom, so its gap to the row above is larger.
+
+Footprints therefore never overlap and are at least `gap_m` apart. Each CAD-sourced object (graph node source ==
+"cad") of each copy is dropped with probability `drop_prob`. One seeded generator draws, per room in order, the
+quarter turn and then the drops (CAD node ids in sorted order): the same seed gives the same layout.
+
+    RoomSource.from_site(name, bundle, site)   what the generator needs of a room bundle
+    generate_layout(sources, config) -> Layout the layout (cadreg/site/compose.py's model)
+    placed_footprint(source, T_building_room)  (2, 2) [min, max] xy of a placed room, building frame
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from ..errors import ConfigError
+from .bundle import Site
+from .compose import Layout, RoomEntry
+
+
+class LayoutConfig(BaseModel):
+    """How the building is laid out: room count, gap between footprints (metres), drop probability, seed."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    site_id: str = Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+    rooms: int = Field(gt=0, le=10_000, description="number of rooms")
+    gap_m: float = Field(0.6, ge=0, description="gap between neighbouring footprints, metres")
+    drop_prob: float = Field(0.35, ge=0, le=1, description="probability that a CAD object of a copy is dropped")
+    seed: int = Field(0, ge=0)
+
+
+@dataclass(frozen=True)
+class RoomSource:
+    """A room bundle to copy.
+
+    name : the source's name (for reports); bundle : the path written into the layout (relative to the layout file
+    or absolute); footprint_min, footprint_max : (2,) float64 xy box of the room's raw points, room frame, metres;
+    cad_ids : ids of the graph nodes with source "cad", sorted.
+    """
+
+    name: str
+    bundle: str
+    footprint_min: np.ndarray
+    footprint_max: np.ndarray
+    cad_ids: tuple[str, ...]
+
+    @classmethod
+    def from_site(cls, name: str, bundle: str, site: Site) -> "RoomSource":
+        xy = site.raw.points[:, :2].astype(np.float64)
+        if len(xy) == 0:
+            raise ConfigError(f"room bundle {bundle!r} has no raw points: no footprint to place")
+        cad = sorted(n.id for n in site.graph.nodes if n.source == "cad")
+        return cls(name, bundle, xy.min(axis=0), xy.max(axis=0), tuple(cad))
+
+    @property
+    def center(self) -> np.ndarray:
+        """(2,) centre of the footprint, room frame."""
+        return (self.footprint_min + self.footprint_max) / 2.0
+
+    @property
+    def size(self) -> np.ndarray:
+        """(2,) width (x) and depth (y) of the footprint, metres."""
+        return self.footprint_max - self.footprint_min
+
+
+def grid_shape(n_rooms: int) -> tuple[int, int]:
+    """(columns, rows) of the near-square grid of `n_rooms`: ceil(sqrt(n)) columns, as many rows as needed."""
+    cols = max(1, math.ceil(math.sqrt(n_rooms)))
+    return cols, math.ceil(n_rooms / cols)
+
+
+def quarter_turn(k: int) -> np.ndarray:
+    """(3, 3) rotation about z by k·90°, with exact 0 / ±1 entries."""
+    c, s = [(1, 0), (0, 1), (-1, 0), (0, -1)][k % 4]
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float64)
+
+
+def turned_size(source: RoomSource, quarter_turns: int) -> np.ndarray:
+    """(2,) footprint size after turning: width and depth swap on odd quarter turns."""
+    return source.size[::-1].copy() if quarter_turns % 2 else source.size.copy()
+
+
+def place_room(source: RoomSource, quarter_turns: int, corner_xy: np.ndarray) -> np.ndarray:
+    """(4, 4) T_building_room turning the room by `quarter_turns`·90° about its footprint centre and putting the
+    turned footprint's min corner at `corner_xy` (building frame, metres)."""
+    R = quarter_turn(quarter_turns)
+    half = turned_size(source, quarter_turns) / 2.0
+    T = np.eye(4)
+    T[:3, :3] = R
+    # p_building = R (p_room - c) + corner + half: the footprint centre c lands on the turned box's centre.
+    T[:2, 3] = corner_xy + half - R[:2, :2] @ source.center
+    return T
+
+
+def placed_footprint(source: RoomSource, T_building_room: np.ndarray) -> np.ndarray:
+    """(2, 2) [[xmin, ymin], [xmax, ymax]] of the room's footprint corners mapped into the building frame."""
+    lo, hi = source.footprint_min, source.footprint_max
+    corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [lo[0], hi[1]], [hi[0], hi[1]]])
+    xy = corners @ T_building_room[:2, :2].T + T_building_room[:2, 3]
+    return np.stack([xy.min(axis=0), xy.max(axis=0)])
+
+
+def draw_room(source: RoomSource, rng: np.random.Generator, drop_prob: float) -> tuple[int, list[str]]:
+    """(quarter turns, dropped CAD node ids) of one copy, drawn in that order from `rng`."""
+    turns = int(rng.integers(4))
+    draws = rng.random(len(source.cad_ids))
+    return turns, [nid for nid, u in zip(source.cad_ids, draws) if u < drop_prob]
+
+
+def grid_corners(sizes: list[np.ndarray], cols: int, gap_m: float) -> list[np.ndarray]:
+    """(2,) min corner of each turned footprint of `sizes` ((2,) each), row by row, `cols` per row."""
+    corners: list[np.ndarray] = []
+    y = 0.0
+    for row_start in range(0, len(sizes), cols):
+        row = sizes[row_start:row_start + cols]
+        x = 0.0
+        for size in row:
+            corners.append(np.array([x, y]))
+            x += float(size[0]) + gap_m
+        y += max(float(s[1]) for s in row) + gap_m
+    return corners
+
+
+def generate_layout(sources: list[RoomSource], config: LayoutConfig) -> Layout:
+    """The layout of `config.rooms` copies of `sources` (cycled) on a grid; deterministic per `config.seed`."""
+    if not sources:
+        raise ConfigError("a layout needs at least one room bundle")
+    rng = np.random.default_rng(config.seed)
+    cols, _ = grid_shape(config.rooms)
+    picked = [sources[k % len(sources)] for k in range(config.rooms)]
+    draws = [draw_room(s, rng, config.drop_prob) for s in picked]
+    sizes = [turned_size(s, turns) for s, (turns, _) in zip(picked, draws)]
+    corners = grid_corners(sizes, cols, config.gap_m)
+    rooms = [RoomEntry(name=f"r{k:03d}", bundle=s.bundle, T_building_room=place_room(s, turns, corner).tolist(),
+                       drop_objects=dropped)
+             for k, (s, (turns, dropped), corner) in enumerate(zip(picked, draws, corners))]
+    return Layout(site_id=config.site_id, rooms=rooms)

@@ -1,0 +1,258 @@
+"""The building benchmark: layout generator, building mesh with dropped objects, the repeated-view oracle and
+views.json, and the bench's unique / repeated figures."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cadreg.bench import FrameOutcome, ViewTruth, format_table, summarize, views_from_doc
+from cadreg.cli.main import main
+from cadreg.geometry import make_T
+from cadreg.site.layout import LayoutConfig, RoomSource, generate_layout, grid_shape, placed_footprint
+from tracking_rooms import look_at
+
+CAD_IDS = tuple(f"cad-{k}" for k in range(7))
+CAMERA_M = np.array([1.7, 2.3, 1.4])
+CHAIR_M = np.array([3.03, 0.62, 0.4])  # cad-4: dropped in room "c" of the oracle's building
+TABLE_CORNER_M = np.array([0.7, 0.6, 0.4])  # seen by every copy (tracking_rooms: a view both rooms share)
+
+
+def _source(name: str = "s", size=(3.5, 2.9), origin=(-0.2, 0.1)) -> RoomSource:
+    lo = np.array(origin, dtype=float)
+    return RoomSource(name, f"rooms/{name}", lo, lo + np.array(size, dtype=float), CAD_IDS)
+
+
+# --- layout generator -----------------------------------------------------------------------------------------
+
+
+def test_layout_grid_has_exact_gaps_and_no_overlap() -> None:
+    gap = 0.6
+    sources = [_source("a"), _source("b", size=(4.0, 2.5))]
+    layout = generate_layout(sources, LayoutConfig(site_id="b10", rooms=10, gap_m=gap, seed=1))
+    assert [r.name for r in layout.rooms] == [f"r{k:03d}" for k in range(10)]
+    assert [r.bundle for r in layout.rooms] == ["rooms/a", "rooms/b"] * 5  # cycled
+    boxes = []
+    for k, r in enumerate(layout.rooms):
+        T = np.asarray(r.T_building_room)
+        assert set(np.round(T[:3, :3], 12).ravel()) <= {0.0, 1.0, -1.0} and T[2, 3] == 0.0  # quarter turns about z
+        src = sources[k % 2]
+        box = placed_footprint(src, T)
+        assert np.allclose(sorted(box[1] - box[0]), sorted(src.size))
+        boxes.append(box)
+    for a, b in itertools.combinations(boxes, 2):  # apart by >= gap along x or y
+        sep = np.maximum(b[0] - a[1], a[0] - b[1])
+        assert sep.max() >= gap - 1e-9
+    cols, rows = grid_shape(10)
+    assert (cols, rows) == (4, 3)
+    for row in range(rows):  # within a row, each room starts exactly `gap` after its left neighbour
+        members = boxes[row * cols:(row + 1) * cols]
+        assert members[0][0, 0] == pytest.approx(0.0)
+        for left, right in zip(members, members[1:]):
+            assert right[0, 0] - left[1, 0] == pytest.approx(gap)
+            assert right[0, 1] == pytest.approx(left[0, 1])  # one band per row
+    bands = [min(b[0, 1] for b in boxes[r * cols:(r + 1) * cols]) for r in range(rows)]
+    tops = [max(b[1, 1] for b in boxes[r * cols:(r + 1) * cols]) for r in range(rows)]
+    assert all(lo - hi == pytest.approx(gap) for hi, lo in zip(tops, bands[1:]))
+
+
+def test_layout_is_deterministic_and_drops_at_the_given_rate() -> None:
+    config = LayoutConfig(site_id="b100", rooms=100, drop_prob=0.35, seed=5)
+    a = generate_layout([_source()], config)
+    assert a == generate_layout([_source()], config)
+    assert a != generate_layout([_source()], config.model_copy(update={"seed": 6}))
+    dropped = [d for r in a.rooms for d in r.drop_objects]
+    assert set(dropped) <= set(CAD_IDS)
+    assert len(dropped) / (100 * len(CAD_IDS)) == pytest.approx(0.35, abs=0.06)  # 700 draws: sd 0.018
+    turns = {round(math.degrees(math.atan2(r.T_building_room[1][0], r.T_building_room[0][0]))) % 360 for r in a.rooms}
+    assert turns == {0, 90, 180, 270}
+    none = generate_layout([_source()], config.model_copy(update={"drop_prob": 0.0}))
+    assert all(not r.drop_objects for r in none.rooms)
+
+
+@pytest.mark.realdata
+def test_layout_cli_writes_a_layout_compose_reads(scene0470_site_dir: Path, tmp_path: Path, capsys) -> None:
+    from cadreg.site.compose import read_layout
+
+    out = tmp_path / "deep" / "layout.json"
+    assert main(["site", "layout", "--room", f"scene0470={scene0470_site_dir}", "--rooms", "4", "--seed", "1",
+                 "--site-id", "b4", "--out", str(out)]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["rooms"] == 4 and report["grid"] == [2, 2] and report["cad_objects"] == 28
+    layout = read_layout(out)
+    assert layout.site_id == "b4" and len(layout.rooms) == 4
+    bundle = Path(layout.rooms[0].bundle)
+    assert not bundle.is_absolute() and (out.parent / bundle).resolve() == scene0470_site_dir.resolve()
+    first = out.read_text()
+    assert main(["site", "layout", "--room", f"scene0470={scene0470_site_dir}", "--rooms", "4", "--seed", "1",
+                 "--site-id", "b4", "--out", str(out)]) == 0
+    assert out.read_text() == first
+    with pytest.raises(SystemExit):  # a malformed --room
+        main(["site", "layout", "--room", "nonsense", "--rooms", "4", "--site-id", "x", "--out", str(out)])
+
+
+# --- building mesh and oracle (real scene0470 mesh) -------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def scene_mesh(scene0470_dir: Path):
+    from cadreg.render import LabelledMesh
+
+    return LabelledMesh.from_ply(scene0470_dir / "scene0470_00_vh_clean_2.ply",
+                                 scene0470_dir / "scene0470_00_vh_clean_2.labels.ply")
+
+
+@pytest.fixture(scope="module")
+def scene_nodes(scene0470_site_dir: Path):
+    from cadreg.site.bundle import Site
+
+    return Site.load(scene0470_site_dir).graph.nodes
+
+
+def _three_rooms_layout(bundle: str):
+    """Rooms a and b: whole copies; c: without the chair cad-4 and the bin cad-0, turned by 90°. 20 m apart, so
+    that no room sees another (the same surroundings: none)."""
+    from cadreg.site.compose import Layout, RoomEntry
+
+    turned = make_T(np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), [43.0, 0.0, 0.0])
+    return Layout(site_id="three", rooms=[
+        RoomEntry(name="a", bundle=bundle, T_building_room=np.eye(4).tolist()),
+        RoomEntry(name="b", bundle=bundle, T_building_room=make_T(t=[20.0, 0.0, 0.0]).tolist()),
+        RoomEntry(name="c", bundle=bundle, T_building_room=turned.tolist(), drop_objects=["cad-4", "cad-0"]),
+    ])
+
+
+@pytest.mark.realdata
+def test_building_mesh_drops_the_faces_of_dropped_objects(scene_mesh, scene_nodes) -> None:
+    from cadreg.render.building import building_mesh, building_rooms, inside_boxes
+    from cadreg.site.compose import DROP_MARGIN_M
+
+    rooms = building_rooms(_three_rooms_layout("r"), {"r": scene_mesh}, {"r": scene_nodes})
+    assert rooms[0].mesh is scene_mesh and rooms[1].mesh is scene_mesh
+    c = rooms[2].mesh
+    dropped = [n for n in scene_nodes if n.id in ("cad-4", "cad-0")]
+    gone = inside_boxes(scene_mesh.vertices, dropped, DROP_MARGIN_M)
+    assert gone.sum() > 200
+    assert not np.any(gone[c.faces])  # no face left touching the dropped boxes
+    removed = len(scene_mesh.faces) - len(c.faces)
+    assert removed == int(np.any(gone[scene_mesh.faces], axis=1).sum()) > 500
+    chair_labels = scene_mesh.labels[np.unique(scene_mesh.faces[np.any(gone[scene_mesh.faces], axis=1)])]
+    assert np.mean(chair_labels == 5) > 0.3  # mostly the chair's own faces (the rest: floor and wall within 3 cm)
+    building = building_mesh(rooms)
+    assert len(building.faces) == 3 * len(scene_mesh.faces) - removed
+    nv = len(scene_mesh.vertices)
+    assert np.allclose(building.vertices[nv:2 * nv], scene_mesh.vertices + [20.0, 0.0, 0.0])
+    assert building.n_instances == 3 * scene_mesh.n_instances
+    with pytest.raises(Exception, match="cad-99"):
+        from cadreg.site.compose import Layout, RoomEntry
+
+        building_rooms(Layout(site_id="x", rooms=[RoomEntry(name="a", bundle="r", T_building_room=np.eye(4).tolist(),
+                                                            drop_objects=["cad-99"])]),
+                       {"r": scene_mesh}, {"r": scene_nodes})
+
+
+@pytest.mark.realdata
+def test_oracle_repeats_shared_views_and_not_views_of_a_dropped_object(scene_mesh, scene_nodes) -> None:
+    from cadreg.render import MeshRenderer, camera_rig
+    from cadreg.render.building import RepeatOracle, building_mesh, building_rooms
+
+    rooms = building_rooms(_three_rooms_layout("r"), {"r": scene_mesh}, {"r": scene_nodes})
+    depth_intr, _, T_color_depth = camera_rig()
+    oracle = RepeatOracle(MeshRenderer(building_mesh(rooms)), rooms, depth_intr, T_color_depth)
+    at_chair = look_at(CAMERA_M, CHAIR_M)
+    agree = oracle.agreements(0, at_chair)
+    assert agree["b"] > 0.999 and agree["c"] < 0.9  # the chair (and the bin) are missing in c
+    assert oracle.repeated_in(0, at_chair) == ["b"]
+    assert oracle.repeated_in(1, at_chair) == ["a"]
+    assert oracle.repeated_in(2, at_chair) == []  # c's view (no chair) is repeated nowhere
+    at_table = look_at(CAMERA_M, TABLE_CORNER_M)
+    assert oracle.repeated_in(0, at_table) == ["b", "c"]  # turning room c does not matter: nothing around it
+
+
+@pytest.mark.realdata
+def test_render_layout_writes_frames_and_views_json(scene0470_dir: Path, scene0470_site_dir: Path, tmp_path: Path,
+                                                    capsys) -> None:
+    from cadreg.io.frames import RecordedFrames
+
+    layout = _three_rooms_layout(str(scene0470_site_dir))
+    layout_path = tmp_path / "three.json"
+    layout_path.write_text(layout.model_dump_json())
+    out = tmp_path / "frames"
+    argv = ["render", "--layout", str(layout_path), "--mesh", str(scene0470_dir / "scene0470_00_vh_clean_2.ply"),
+            "--labels", str(scene0470_dir / "scene0470_00_vh_clean_2.labels.ply"), "--out", str(out), "--n", "4",
+            "--seed", "3"]
+    assert main(argv) == 0
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert printed["frames"] == 4 and printed["rooms"] == 3
+    doc = json.loads((out / "views.json").read_text())
+    assert set(doc["rooms"]) == {"a", "b", "c"} and doc["oracle"]["min_agreement"] == 0.97
+    frames = RecordedFrames.open(out)
+    assert frames.indices == [0, 1, 2, 3]
+    for v in doc["views"]:
+        assert set(v) >= {"index", "room", "repeated", "repeated_in", "T_room_camera"}
+        assert v["room"] not in v["repeated_in"] and v["repeated"] == bool(v["repeated_in"])
+        assert v["repeated_in"] == [r for r, a in v["agreement"].items() if a >= 0.97]
+        T_building_room = np.asarray(doc["rooms"][v["room"]]["T_building_room"])
+        assert np.allclose(frames.pose(v["index"]), T_building_room @ np.asarray(v["T_room_camera"]), atol=1e-6)
+    truth = views_from_doc(doc)
+    assert set(truth) == {0, 1, 2, 3} and all(len(t.T_twins) == len(t.repeated_in) for t in truth.values())
+    (out / "pose" / "0.txt").unlink()
+    assert main(argv) == 0  # same seed, same views
+    again = json.loads((out / "views.json").read_text())
+    assert again["views"] == doc["views"]
+
+
+# --- bench figures ------------------------------------------------------------------------------------------------
+
+
+def test_bench_splits_unique_and_repeated_views() -> None:
+    inf = math.inf
+    outs = [
+        # unique views: two right (one ok, one ambiguous), one wrong ok, one failed
+        FrameOutcome(0, "ok", 0.01, 1.0, 10.0, confidence=0.9, truth_in_hypotheses=True, repeated=False),
+        FrameOutcome(1, "ambiguous", 0.02, 1.0, 10.0, confidence=0.5, truth_in_hypotheses=True, repeated=False),
+        FrameOutcome(2, "ok", 6.0, 90.0, 10.0, confidence=0.8, repeated=False),
+        FrameOutcome(3, "no_match", inf, inf, 10.0, confidence=0.0, repeated=False),
+        # repeated views: ambiguous with the truth among hypotheses (answer elsewhere), ambiguous without it,
+        # ok in the right room, ok in the twin room, low overlap
+        FrameOutcome(4, "ambiguous", 6.0, 0.5, 10.0, confidence=0.4, truth_in_hypotheses=True, repeated=True),
+        FrameOutcome(5, "ambiguous", 3.0, 20.0, 10.0, confidence=0.4, truth_in_hypotheses=False, repeated=True),
+        FrameOutcome(6, "ok", 0.01, 0.5, 10.0, confidence=0.95, truth_in_hypotheses=True, repeated=True),
+        FrameOutcome(7, "ok", 6.0, 0.5, 10.0, confidence=0.95, repeated=True, twin_answer=True),
+        FrameOutcome(8, "low_overlap", inf, inf, 10.0, confidence=0.1, repeated=True),
+        # a frame views.json does not know counts overall only
+        FrameOutcome(9, "ok", 0.01, 0.5, 10.0, confidence=0.9, truth_in_hypotheses=True),
+    ]
+    s = summarize(outs)
+    assert s["unique"] == {"frames": 4, "success_5cm_5deg": 0.5, "ok_precision": 0.5, "ok_wrong": 1}
+    assert s["repeated"] == {"frames": 5, "ambiguous": 0.4, "ambiguous_with_truth": 0.2, "ok_right_room": 1,
+                             "ok_wrong": 1, "ok_twin_room": 1}
+    assert s["ok_precision"] == pytest.approx(3 / 5) and s["wrong_ok"] == 2  # overall figures unchanged
+    assert set(s["reliability"]) == {"0.0-0.5", "0.5-0.7", "0.7-0.9", "0.9-1.0"}
+    json.dumps(s)
+    table = format_table({"frames": 10, "skipped": [], "methods": {"cadreg": s}})
+    assert "unique views: 4, @5cm/5° 50.0%" in table and "ambiguous with the truth among hypotheses 20.0%" in table
+    # Frames without views.json: no unique / repeated keys, the table as before.
+    plain = summarize([FrameOutcome(0, "ok", 0.01, 1.0, 10.0)])
+    assert "unique" not in plain and "repeated" not in plain
+    only_unique = summarize([FrameOutcome(0, "ok", 0.01, 1.0, 10.0, repeated=False)])
+    assert only_unique["repeated"]["frames"] == 0 and only_unique["repeated"]["ambiguous_with_truth"] is None
+
+
+def test_views_doc_gives_the_twin_poses() -> None:
+    T_room = make_T(t=[0.5, 0.2, 1.3])
+    doc = {"rooms": {"a": {"T_building_room": np.eye(4).tolist()},
+                     "b": {"T_building_room": make_T(t=[10.0, 0.0, 0.0]).tolist()}},
+           "views": [{"index": 3, "room": "a", "repeated": True, "repeated_in": ["b"], "T_room_camera": T_room.tolist()},
+                     {"index": 4, "room": "b", "repeated": False, "repeated_in": [], "T_room_camera": T_room.tolist()}]}
+    truth = views_from_doc(doc)
+    assert (truth[3].room, truth[3].repeated_in, truth[3].repeated) == ("a", ("b",), True)
+    assert isinstance(truth[4], ViewTruth) and not truth[4].repeated
+    assert np.allclose(truth[3].T_twins[0][:3, 3], [10.5, 0.2, 1.3])
+    with pytest.raises(ValueError, match="views.json"):
+        views_from_doc({"views": []})
