@@ -13,6 +13,7 @@ import numpy as np
 from .camera import CameraIntrinsics
 from .errors import InvalidFrame
 from .geometry import is_rigid
+from .site.regions import SearchRegion
 
 # Fields of view of real depth and colour cameras: telephoto phones ~25°, Kinect / RealSense / Structure 55–90°,
 # ultra-wide phones ~120°. Intrinsics outside these are a unit mistake (fx in metres, or in another image size)
@@ -32,6 +33,8 @@ class Frame:
     T_color_depth : (4, 4) float64 rigid transform, depth camera -> colour camera.
     gravity_camera : (3,) unit vector of gravity ("down") in the colour camera frame, optional.
     T_map_camera_prior : (4, 4) optional pose prior (colour camera -> map).
+    search_region : where the client says the camera is (a ball in the map frame, or region ids): hypotheses
+        elsewhere are not considered.
     """
 
     depth: np.ndarray
@@ -45,6 +48,7 @@ class Frame:
     gravity_camera: np.ndarray | None = None
     T_map_camera_prior: np.ndarray | None = None
     frame_id: str | None = None
+    search_region: SearchRegion | None = None
 
     def __post_init__(self) -> None:
         self.validate()
@@ -97,5 +101,7 @@ class Frame:
             if P.shape != (4, 4) or not np.all(np.isfinite(P)) or not is_rigid(P):
                 raise InvalidFrame("pose prior must be a finite rigid 4x4 transform")
             self.T_map_camera_prior = P
+        if self.search_region is not None and not isinstance(self.search_region, SearchRegion):
+            raise InvalidFrame(f"search_region must be a SearchRegion, got {type(self.search_region).__name__}")
         if not np.any(d):
             raise InvalidFrame("depth has no valid pixel (all zero)")

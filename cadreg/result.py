@@ -39,6 +39,7 @@ class Hypothesis:
         hypotheses are ranked by).
     matches : (scan object index, map node id) pairs the hypothesis rests on.
     source : "graph" | "prior" | "fallback:<name>".
+    region : id of the site region the pose looks into (a building's room; the site's id for a one-room site).
     """
 
     T_map_camera: np.ndarray
@@ -48,6 +49,7 @@ class Hypothesis:
     geometric_score: float
     matches: list[tuple[int, str]] = field(default_factory=list)  # (scan object index, map node id)
     source: str = "graph"  # graph | fallback | prior
+    region: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -58,6 +60,7 @@ class Hypothesis:
             "geometric_score": float(self.geometric_score),
             "matches": [[int(i), str(n)] for i, n in self.matches],
             "source": self.source,
+            "region": self.region,
         }
 
 

@@ -31,8 +31,9 @@ from pydantic import ValidationError
 from cadreg.camera import CameraIntrinsics
 from cadreg.errors import CadregError, InvalidFrame
 from cadreg.frame import Frame
+from cadreg.site.regions import SearchRegion
 
-from .schemas import FrameMeta, Intrinsics
+from .schemas import FrameMeta, Intrinsics, SearchRegionIn
 
 MAGIC = b"CDRG"
 ENVELOPE_VERSION = 1
@@ -213,6 +214,7 @@ def encode_frame_parts(frame: Frame, *, top_k: int = 5) -> tuple[dict[str, bytes
         gravity=None if frame.gravity_camera is None else [float(x) for x in frame.gravity_camera],
         pose_prior=None if frame.T_map_camera_prior is None else np.asarray(frame.T_map_camera_prior).tolist(),
         top_k=top_k,
+        search_region=None if frame.search_region is None else frame.search_region.to_dict(),
     )
     return parts, meta
 
@@ -266,11 +268,20 @@ def decode_frame(parts: dict[str, bytes], meta: FrameMeta | dict[str, Any] | str
             gravity_camera=None if meta.gravity is None else np.asarray(meta.gravity, dtype=float),
             T_map_camera_prior=None if meta.pose_prior is None else np.asarray(meta.pose_prior, dtype=float),
             frame_id=meta.frame_id,
+            search_region=_search_region(meta.search_region),
         )
     except CadregError:
         raise
     except (TypeError, ValueError) as exc:
         raise InvalidFrame(f"invalid frame: {exc}") from None
+
+
+def _search_region(wire: SearchRegionIn | None) -> SearchRegion | None:
+    if wire is None:
+        return None
+    if wire.region_ids is not None:
+        return SearchRegion(region_ids=tuple(wire.region_ids))
+    return SearchRegion(center=np.asarray(wire.center, dtype=float), radius_m=float(wire.radius_m))
 
 
 # --- zenoh envelope -----------------------------------------------------------------------------------------------

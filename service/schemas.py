@@ -11,10 +11,11 @@ from __future__ import annotations
 import math
 from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, Strict, field_validator
+from pydantic import BaseModel, ConfigDict, Field, Strict, field_validator, model_validator
 
 WIRE_VERSION = 1
 MAX_TOP_K = 20
+MAX_SEARCH_REGIONS = 256
 
 # Numbers on the wire are strict: JSON `true` is not 1 (pydantic's lax mode takes a bool, or a numeric string, for a
 # number). A float field still takes a JSON integer.
@@ -46,6 +47,25 @@ def _check_matrix4(value: list[list[float]] | None) -> list[list[float]] | None:
     return value
 
 
+class SearchRegionIn(_Wire):
+    """Where the camera is, as the client knows it: a ball (`center` + `radius_m`, map frame, metres) or the ids
+    of site regions (`GET /v1/sites/{site_id}` lists them). Hypotheses elsewhere are not considered."""
+
+    center: list[WireFloat] | None = Field(None, min_length=3, max_length=3, description="[x, y, z], map frame, metres")
+    radius_m: WireFloat | None = Field(None, gt=0, le=100_000, description="radius of the ball, metres")
+    region_ids: list[Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9._-]+$")]] | None = Field(
+        None, min_length=1, max_length=MAX_SEARCH_REGIONS, description="region ids of the site")
+
+    @model_validator(mode="after")
+    def _one_form(self) -> "SearchRegionIn":
+        ball = self.center is not None or self.radius_m is not None
+        if ball == (self.region_ids is not None):
+            raise ValueError("give either center and radius_m, or region_ids")
+        if ball and (self.center is None or self.radius_m is None):
+            raise ValueError("a ball needs both center and radius_m")
+        return self
+
+
 class FrameMeta(_Wire):
     """Everything about a frame that is not pixels."""
 
@@ -69,6 +89,8 @@ class FrameMeta(_Wire):
         description="tracking session: frames of one session are tracked from the last pose (diagnostics.mode); "
         "a zenoh stream device is a session of its own without it",
     )
+    search_region: SearchRegionIn | None = Field(
+        None, description="restrict the search to a ball or to site regions (a building's rooms)")
     stamp_s: WireFloat | None = Field(
         None, description="capture time of the frame, seconds on the client's clock: a session's motion is timed by "
         "it when given (by the frame's arrival otherwise); send it for every frame of a session or for none",

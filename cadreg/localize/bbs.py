@@ -111,11 +111,17 @@ class GridPyramid:
         self.nbytes = sum(x.nbytes for x in self.grids)
 
     # ------------------------------------------------------------------------------------------------------------
-    def camera_domain(self, z_range_level: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def camera_domain(self, z_range_level: tuple[float, float] | None = None,
+                      box_level: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(lo, hi) inclusive cell indices of camera positions searched: the map's box grown by margin_m (a
-        camera is not far from everything it sees); in z `z_range_level` when given."""
+        camera is not far from everything it sees); in z `z_range_level` when given; within `box_level` ((2, 3)
+        min and max corners, level frame, metres: a client's search region) when given."""
         lo = np.full(3, self.pad - self.margin)
         hi = np.full(3, self.pad) + self.inner - 1 + self.margin
+        if box_level is not None:
+            cells = np.floor((np.asarray(box_level, dtype=np.float64) - self.origin) / self.voxel_m).astype(np.int64)
+            lo = np.maximum(lo, cells[0])
+            hi = np.maximum(np.minimum(hi, cells[1]), lo)
         if z_range_level is not None:
             zl, zh = (np.floor((np.asarray(z_range_level) - self.origin[2]) / self.voxel_m)).astype(np.int64)
             z_lo, z_hi = lo[2], hi[2]
@@ -125,8 +131,9 @@ class GridPyramid:
         return lo, hi
 
     def search(self, points_level: np.ndarray, yaws_rad: np.ndarray, *, z_range_level: tuple[float, float] | None = None,
-               keep_ratio: float = 0.85, max_nodes: int = 1500, dives: int = 4) -> tuple[np.ndarray, np.ndarray, SearchStats]:
-        """Best leaves of the search.
+               box_level: np.ndarray | None = None, keep_ratio: float = 0.85, max_nodes: int = 1500,
+               dives: int = 4) -> tuple[np.ndarray, np.ndarray, SearchStats]:
+        """Best leaves of the search (camera positions within `box_level` when given, see `camera_domain`).
 
         points_level : (m, 3) frame points rotated so that the camera's up is +z (camera at the origin).
         yaws_rad : (k,) yaws searched. Leaves scoring at least keep_ratio × the best are returned:
@@ -146,7 +153,7 @@ class GridPyramid:
         v = self.voxel_m
         offs = (np.floor(x / v).astype(np.int64) * self.strides[0] + np.floor(y / v).astype(np.int64) * self.strides[1]
                 + np.floor(z / v).astype(np.int64) * self.strides[2])  # (k, n)
-        lo, hi = self.camera_domain(z_range_level)
+        lo, hi = self.camera_domain(z_range_level, box_level)
         H = self.levels
         span = 2 ** H
         axes = [np.arange(lo[a], hi[a] + 1, span) for a in range(3)]

@@ -27,6 +27,7 @@ from ..frame import Frame
 from ..geometry import rotation_angle_deg, rotation_between, transform_points
 from ..result import Diagnostics, Hypothesis, LocalizationResult, Match, Refinement, Roi, ScanObject, Status
 from ..site.bundle import Site
+from ..site.regions import CAMERA_MARGIN_M
 from .cluster import cluster_objects
 from .bbs import GridPyramid, map_direction_histogram, polish, yaw_candidates
 from .fallback import FpfhRansac
@@ -136,7 +137,11 @@ class Localizer:
     def warm(self) -> "Localizer":
         """Build now what is otherwise built on first use (the map's FPFH features for the fallback, about a second
         a site), so that a long-running server does not make its first fallback request pay for it."""
-        if self.config.fallback.enabled:
+        if len(self.maps) == 1:
+            self.refine_map.fine_target()
+        # A building's FPFH features (the last resort, with no up direction) would cost seconds and a copy of
+        # the whole map in every worker: built on first use there.
+        if self.config.fallback.enabled and len(self.maps) == 1:
             self.fpfh()
         if self.config.label_free.enabled:
             self.pyramid()
@@ -193,6 +198,8 @@ class Localizer:
         if not isinstance(frame, Frame):
             raise InvalidFrame(f"expected a Frame, got {type(frame).__name__}")
         frame.validate()
+        if frame.search_region is not None:
+            frame.search_region.resolve(self.maps.regions)  # unknown region ids: InvalidFrame naming them
         method = method or self.config.refine.method
         if method not in REFINE_METHODS:
             raise InvalidArgument(f"unknown refinement method {method!r}; choose one of {REFINE_METHODS}")
@@ -229,12 +236,12 @@ class Localizer:
         return Scan(points, down, class_index, clusters, floor, score_xyz=down.xyz[score], fit_xyz=down.xyz[fit],
                     fit_rgb=down.rgb[fit], fit_cls=class_index[fit], check_xyz=points.xyz[check],
                     zbuf=ViewCheck.zbuffer(down.xyz, frame.depth_intrinsics), K=frame.depth_intrinsics,
-                    center_camera=points.xyz.mean(axis=0))
+                    center_camera=points.xyz.mean(axis=0), search=frame.search_region)
 
     def _hypotheses(self, scan: Scan) -> Hypotheses:
         """Scan graph x map graph -> the distinct best pose hypotheses (at most MatchConfig.candidates): a quick
         geometric screen of all, then Sim (eq. 6–8) and the full distance-field check of those kept."""
-        hyp = self._graph_hypotheses(scan)
+        hyp = self._within_search(self._graph_hypotheses(scan), scan)
         if not len(hyp):
             return hyp
         mc = self.config.match
@@ -247,9 +254,27 @@ class Localizer:
                     edge_max_m=self.site.edge_max_m, alpha=mc.alpha, beta=mc.beta)
         hyp.geometric = score_poses(self.field, scan.score_xyz, hyp.R, hyp.t, tau_m=mc.score_tau_m)
         rank = hyp.geometric * (1.0 - mc.sim_weight + mc.sim_weight * hyp.sim)
-        keep = distinct_best(hyp.R, hyp.t, np.argsort(-rank), count=mc.candidates,
+        keep = distinct_best(hyp.R, hyp.t, self._best_regions(hyp, np.argsort(-rank)), count=mc.candidates,
                              min_translation_m=mc.distinct_translation_m, min_rotation_deg=mc.distinct_rotation_deg)
         return hyp.take(np.array(keep, dtype=np.int64))
+
+    def _within_search(self, hyp: Hypotheses, scan: Scan) -> Hypotheses:
+        """The hypotheses whose camera lies in the client's search region (all of them without one)."""
+        if scan.search is None or not len(hyp):
+            return hyp
+        return hyp.take(np.flatnonzero(scan.search.allows(hyp.t, self.maps.regions)))
+
+    def _best_regions(self, hyp: Hypotheses, order: np.ndarray) -> np.ndarray:
+        """`order` (hypothesis indices, best first) kept to the RegionConfig.max_verified regions whose best
+        hypothesis ranks highest: the graph match ranks the regions, and only the best are verified (each costs
+        its region's search structures)."""
+        if len(self.maps) == 1 or not len(order):
+            return order
+        node = hyp.seed[order, 1]
+        region = np.where(node >= 0, self.node_region[np.maximum(node, 0)], -1)
+        _, first = np.unique(region, return_index=True)
+        best = region[np.sort(first)[: self.config.regions.max_verified]]
+        return order[np.isin(region, best)]
 
     def _graph_hypotheses(self, scan: Scan) -> Hypotheses:
         """With up known: pairs fix yaw and translation, single objects sweep yaw; without: triples by Kabsch."""
@@ -297,6 +322,7 @@ class Localizer:
                         break
                     found = self._fallback(name, scan, diag.notes)
                     if found is not None:
+                        found = self._within_search(found, scan)
                         # A pose the graph has already found stays the graph's (it carries the matches).
                         candidates += [c for c in self._coarse_align(found, source, scan, origin=f"fallback:{name}")
                                        if all(self._distinct(c.T_map_camera, g.T_map_camera) for g in candidates)]
@@ -371,6 +397,14 @@ class Localizer:
             rival = next((c for c in candidates[1:] if self._distinct(c.T_map_camera, best.T_map_camera)), None)
             has_rival = rival is not None
             margin = best.score - (rival.score if has_rival else 0.0)
+        # A distinct candidate as close to the best as the contenders, but beyond the refine_contenders refined,
+        # was never ruled out (repeated rooms give many): the answer cannot claim to be the one.
+        unexamined = [c for c in candidates[1:] if best.score - c.score < mc.ambiguity_margin
+                      and not any(c is r[2] for r in refined)
+                      and all(self._distinct(c.T_map_camera, r[1].T_map_camera) for r in refined)]
+        if unexamined:
+            diag.notes.append(f"{len(unexamined)} more distinct hypotheses as close as the refined ones were not refined")
+            has_rival, margin = True, 0.0
         _, out, winner, see = refined[0]
         fitness, rmse = self.maps_at(out.T_map_camera, center_camera).refine_map.fitness(
             transform_points(out.T_map_camera, scan.check_xyz), inlier_m=rc.inlier_m)
@@ -471,8 +505,18 @@ class Localizer:
             # A labelled floor gives the camera's height: only a band about it is searched.
             z_level = self.floor_height_m + floor.height_m  # heights along up are the level frame's z
             z_range = (z_level - 2 * lf.voxel_m, z_level + 2 * lf.voxel_m)
-        poses, scores, stats = pyr.search(scan.down.xyz[pick] @ R_up.T, yaws, z_range_level=z_range,
-                                          keep_ratio=lf.keep_ratio, max_nodes=lf.max_nodes)
+        points_level = scan.down.xyz[pick] @ R_up.T
+        found = [pyr.search(points_level, yaws, z_range_level=z_range, box_level=box, keep_ratio=lf.keep_ratio,
+                            max_nodes=lf.max_nodes) for box in self._search_boxes(scan, pyr.R_level_map)]
+        poses = np.concatenate([f[0] for f in found])
+        scores = np.concatenate([f[1] for f in found])
+        order = np.argsort(-scores, kind="stable")
+        poses, scores = poses[order], scores[order]
+        stats = found[0][2]
+        for f in found[1:]:
+            stats.nodes += f[2].nodes
+            stats.capped |= f[2].capped
+            stats.best = max(stats.best, f[2].best)
         mc = self.config.match
         hyp = pyr.hypotheses(poses, scores, R_up, count=lf.candidates, min_translation_m=mc.distinct_translation_m,
                              min_rotation_deg=mc.distinct_rotation_deg)
@@ -480,6 +524,23 @@ class Localizer:
         notes.append(f"label-free search: {len(yaws)} yaws, {stats.nodes} nodes, best leaf {stats.best:.2f}"
                      + (" (node cap reached)" if stats.capped else ""))
         return hyp if len(hyp) else None
+
+    def _search_boxes(self, scan: Scan, R_level_map: np.ndarray) -> list[np.ndarray | None]:
+        """Boxes (level frame, (2, 3) corners) of camera positions the label-free search covers: [None] (the
+        whole site) without a search region, else one per region named, or the client's ball."""
+        if scan.search is None:
+            return [None]
+        if scan.search.region_ids:
+            boxes = [np.stack([r.bounds[0] - CAMERA_MARGIN_M, r.bounds[1] + CAMERA_MARGIN_M])
+                     for r in scan.search.resolve(self.maps.regions)]
+        else:
+            boxes = [np.stack([scan.search.center - scan.search.radius_m, scan.search.center + scan.search.radius_m])]
+        out = []
+        for lo, hi in boxes:
+            corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+            level = corners @ R_level_map.T
+            out.append(np.stack([level.min(axis=0), level.max(axis=0)]))
+        return out
 
     def _coarse_align(self, hyp: Hypotheses, source: small_gicp.PointCloud, scan: Scan, *,
                       origin: str = "graph") -> list[Candidate]:
@@ -493,7 +554,7 @@ class Localizer:
             h = Hypothesis(T, float(hyp.sim[i]) if scored(hyp.sim) else 0.0, float(hyp.s_v[i]) if scored(hyp.s_v) else 0.0,
                            float(hyp.s_e[i]) if scored(hyp.s_e) else 0.0, score,
                            matches=[(int(k), self.graph.ids[a]) for k, a in enumerate(assignment) if a >= 0],
-                           source=origin)
+                           source=origin, region=self._maps(T, scan).region.id)
             out.append(Candidate(T, score, h, assignment))
         return out
 

@@ -69,7 +69,9 @@ class RefineMap:
         self.coarse_voxel_m = coarse_voxel_m
         self.color_scales_m = tuple(color_scales_m)
         self.color_weight_m = color_weight_m
-        self.sg_fine, self.sg_fine_tree = small_gicp.preprocess_points(self.xyz, fine_voxel_m, num_neighbors=GICP_NEIGHBORS)
+        # The fine target costs most of a map's build and only the refinement of the best poses uses it: built on
+        # first use (`fine_target`), so that verifying a hypothesis in another room of a building stays cheap.
+        self._sg_fine: tuple[small_gicp.PointCloud, small_gicp.KdTree] | None = None
         self.sg_coarse, self.sg_coarse_tree = small_gicp.preprocess_points(self.xyz, coarse_voxel_m, num_neighbors=GICP_NEIGHBORS)
         keep = voxel_indices(self.xyz, fitness_voxel_m)
         self.fit_xyz = self.xyz[keep]
@@ -81,6 +83,12 @@ class RefineMap:
         self._o3d_targets: list | None = None
 
     # -- structures built on first use of a method ---------------------------------------------------------------
+    def fine_target(self) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
+        """small_gicp's map at fine_voxel_m and its KD-tree."""
+        if self._sg_fine is None:
+            self._sg_fine = small_gicp.preprocess_points(self.xyz, self.fine_voxel_m, num_neighbors=GICP_NEIGHBORS)
+        return self._sg_fine
+
     def color_targets(self) -> list[ColorGicpTarget]:
         if self._color_targets is None:
             self._color_targets = [ColorGicpTarget(prepare_cloud(self.xyz, self.rgb, v), self.color_weight_m)
@@ -157,7 +165,8 @@ class RefineMap:
             # Wide then narrow correspondences: the wide pass pulls in a start some centimetres off, the narrow
             # one keeps stray points out of the final estimate.
             for corr in (2.5 * max_correspondence_m, max_correspondence_m):
-                res = small_gicp.align(self.sg_fine, src, self.sg_fine_tree, init_T_target_source=T,
+                target, tree = self.fine_target()
+                res = small_gicp.align(target, src, tree, init_T_target_source=T,
                                        registration_type="GICP", max_correspondence_distance=corr,
                                        num_threads=1, max_iterations=max_iterations, translation_epsilon=epsilon,
                                        rotation_epsilon=epsilon)

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..result import Hypothesis, Status
+from ..site.regions import SearchRegion
 from .cluster import ScanCluster
 from .gravity import Floor
 from .points import FramePoints
@@ -57,6 +58,7 @@ class Scan:
     zbuf: np.ndarray | None = None
     K: object | None = None
     center_camera: np.ndarray | None = None  # (3,) centroid of `points`: where a pose's region is looked up
+    search: SearchRegion | None = None  # the client's search region (Frame.search_region)
 
 
 @dataclass

@@ -210,7 +210,8 @@ def _refine(localizer: "Localizer", points: FramePoints, check_xyz: np.ndarray, 
     T = rm.coarse_align(coarse, predicted, max_correspondence_m=cfg.coarse_correspondence_m,
                         max_iterations=cfg.coarse_iterations)
     fine, _ = small_gicp.preprocess_points(points.xyz, cfg.fine_voxel_m, num_neighbors=GICP_NEIGHBORS)
-    res = small_gicp.align(rm.sg_fine, fine, rm.sg_fine_tree, init_T_target_source=T, registration_type="GICP",
+    target, tree = rm.fine_target()
+    res = small_gicp.align(target, fine, tree, init_T_target_source=T, registration_type="GICP",
                            max_correspondence_distance=cfg.fine_correspondence_m, num_threads=1,
                            max_iterations=cfg.fine_iterations, translation_epsilon=rc.epsilon,
                            rotation_epsilon=rc.epsilon)
