@@ -205,6 +205,10 @@ def test_render_layout_writes_frames_and_views_json(scene0470_dir: Path, scene04
     assert main(argv) == 0  # same seed, same views
     again = json.loads((out / "views.json").read_text())
     assert again["views"] == doc["views"]
+    # Without --mesh each room bundle's own scan (site.json inputs) is rendered: the same mesh here, the same views.
+    own = tmp_path / "own"
+    assert main(["render", "--layout", str(layout_path), "--out", str(own), "--n", "1", "--seed", "3"]) == 0
+    assert json.loads((own / "views.json").read_text())["views"][0] == doc["views"][0]
 
 
 # --- bench figures ------------------------------------------------------------------------------------------------
