@@ -65,8 +65,21 @@ class AutoCadConfig(_Section):
     anisotropy_sigma: float = Field(0.15, gt=0, description="how far (log of the ratio) the fit may change a "
                                     "model's horizontal proportions before it costs like 1 cm of misfit per point: "
                                     "chairs of a kind differ by ~10 %, and free proportions let a wrong yaw fit")
+    base_fraction: float = Field(0.2, ge=0, lt=0.9, description="the lowest share of an instance's height (legs, "
+                                 "a swivel base, casters) is left out of the yaw and scale search and the ICP, on "
+                                 "the scan and on the model: it is what differs most between models of a class, and "
+                                 "a swivel chair's star base turns independently of its seat, so fitting it pulls "
+                                 "the seat and back off their yaw and proportions; the bottom stays on the support")
     cover_footprint: bool = Field(True, description="after the fit, grow the CAD's horizontal scales until its box "
-                                  "covers the instance's footprint")
+                                  "covers the footprint of the instance's points that the CAD explains")
+    cover_explained_m: float = Field(0.06, gt=0, description="points within this of the fitted CAD are the ones its "
+                                     "box grows to cover (robust 0.5–99.5 %); farther ones are label bleed onto a "
+                                     "wall or the floor. Twice inlier_m: a library model is rarely the object itself")
+    same_model_margin: float = Field(0.1, ge=0, description="objects of a class in one room are mostly of one kind: "
+                                     "the model that fits the class's instances best overall is kept for an instance "
+                                     "unless another fits it better by more than this share of its truncated Chamfer "
+                                     "score (partial scans of one chair are weak evidence between similar models); "
+                                     "0 picks each instance's best")
     score_truncation_m: float = Field(0.05, gt=0, description="distances are capped at this in the Chamfer "
                                       "score, so unseen CAD parts (a chair's hidden legs) cost a bounded amount")
     support_search_m: float = Field(0.3, ge=0, description="the surface an object stands on is sought among "

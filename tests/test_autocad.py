@@ -1,4 +1,5 @@
-"""Automatic CAD alignment (issue 13) on the real scene0470 scan, labels and ShapeNet library.
+"""Automatic CAD alignment (issue 13) on the real scene0470 scan, labels and ShapeNet library, and on synthetic
+swivel chairs with a known pose.
 
 The full auto-CAD site is built once for the module (~30–40 s on 2 cores); the other builds use libraries of one
 synset (symlinks into ../shared/data, made in tmp) so that only one instance gets fitted.
@@ -17,7 +18,9 @@ from cadreg.cli.main import main
 from cadreg.config import AutoCadConfig
 from cadreg.errors import InvalidFileError
 from cadreg.io.scan2cad import read_scan2cad, write_scan2cad
-from cadreg.site.autocad import SYM_2, SYM_INF, SYM_NONE, load_library
+from cadreg.site.autocad import (R_UPRIGHT_CAD, SYM_2, SYM_INF, SYM_NONE, Fit, InstanceResult, ModelFit,
+                                  _cover_footprint, _Rz, fit_model, load_library, model_data, prefer_common_models,
+                                  prepare_model)
 from cadreg.site.autocad_check import compare_alignments
 from cadreg.site.build import auto_cad_document, build_site
 from cadreg.site.bundle import Site
@@ -72,10 +75,10 @@ def test_auto_aligned_objects_against_the_annotation(auto_site, scene0470_dir: P
     # every annotated object got an automatic CAD of its own class nearby, upright and at the right height
     assert all(r.auto_cad_id is not None and r.auto_cls == r.cls for r in rows), rows
     assert all(r.height_m <= 0.10 and r.horizontal_m <= 0.07 and r.yaw_deg <= 15.0 for r in rows), rows
-    # the table and the bin (one library model each) within the issue's tolerances; of the five chairs, fitted
-    # with four candidate models, at least one (the measured figure is in the README)
+    # the table and the bin (one library model each) within the issue's tolerances, and the issue's figure: at
+    # least 6 of the 7 (the five chairs fitted with four candidate models; the table is in the README)
     assert by_cls["table"][0].ok and by_cls["otherfurniture"][0].ok, rows
-    assert sum(r.ok for r in rows) >= 3, rows
+    assert sum(r.ok for r in rows) >= 6, rows
     assert all(n.cls in {"chair", "table", "otherfurniture"} for n in _cad_nodes(site))
     assert sorted(n.cls for n in site.graph.nodes if n.source == "cluster") == ["bag", "door", "whiteboard",
                                                                                 "window"]
@@ -219,3 +222,103 @@ def test_fused_site_with_auto_cad(scene0470_dir: Path, tmp_path: Path, capsys) -
     assert node.cls == "otherfurniture" and auto_cad_ids(site) == {node.id}
     assert np.linalg.norm(node.centroid[:2] - target[:2]) < 0.06
     assert (out / "auto_cad.scan2cad.json").is_file()
+
+
+# --- synthetic swivel chairs (upright coordinates: z up, the seat's back edge towards -y) ------------------------
+
+
+def _swivel_chair(base_deg: float, leg_m: float = 0.33, seat_depth_m: float = 0.45):
+    """A seat, a back, a column and a five-legged star base turned by base_deg (upright coordinates, metres)."""
+    import trimesh
+
+    def box(extent, center, yaw_deg=0.0):
+        T = trimesh.transformations.rotation_matrix(np.radians(yaw_deg), [0, 0, 1]) @ \
+            trimesh.transformations.translation_matrix(center)
+        return trimesh.creation.box(extent, T)
+
+    parts = [box([0.45, seat_depth_m, 0.05], [0, 0, 0.445]),
+             box([0.45, 0.04, 0.45], [0, -seat_depth_m / 2 + 0.02, 0.695]),
+             box([0.05, 0.05, 0.37], [0, 0, 0.235])]
+    parts += [box([leg_m, 0.05, 0.04], [leg_m / 2, 0, 0.03], base_deg + 72.0 * k) for k in range(5)]
+    return trimesh.util.concatenate(parts)
+
+
+def _model(mesh_up):
+    """ModelData of an upright mesh, stored the ShapeNet way (y up) as a library model would be."""
+    cad = mesh_up.copy()
+    T = np.eye(4)
+    T[:3, :3] = R_UPRIGHT_CAD.T
+    cad.apply_transform(T)
+    return model_data(prepare_model(cad, synset=CHAIR, model_id="synthetic", path="-"))
+
+
+def _scan(mesh_up, yaw_deg: float, t: np.ndarray, n: int = 4000) -> np.ndarray:
+    import trimesh
+
+    pts = np.asarray(trimesh.sample.sample_surface(mesh_up, n, seed=3)[0])
+    return pts @ _Rz(np.radians(yaw_deg)).T + t
+
+
+def _yaw_error_deg(a: float, b: float) -> float:
+    return abs((a - b + 180.0) % 360.0 - 180.0)
+
+
+def test_fit_ignores_a_base_that_differs_from_the_model() -> None:
+    """A library chair whose star base is half as wide again as the scanned one's, turned 36° on its swivel: fitted
+    on all points, the base drags the yaw and shrinks the seat; fitted above the base, seat and back decide."""
+    model = _model(_swivel_chair(0.0, leg_m=0.42))
+    points = _scan(_swivel_chair(36.0, leg_m=0.28), 30.0, np.array([1.0, 2.0, 0.0]))
+    c = AutoCadConfig(cover_footprint=False)
+    fit = fit_model(points, 0.0, model, c)
+    assert _yaw_error_deg(fit.yaw_deg, 30.0) < 10.0, fit.yaw_deg
+    seat_m = 0.45 * fit.scale_up[:2]
+    assert np.all(np.abs(seat_m - 0.45) < 0.045), seat_m
+    assert np.linalg.norm(fit.A_map_cad[:2, 3] - [1.0, 2.0]) < 0.05
+    # the scene is one where the base matters: with it in the fit, the yaw or the seat is far off
+    whole = fit_model(points, 0.0, model, c.model_copy(update={"base_fraction": 0.0}))
+    assert _yaw_error_deg(whole.yaw_deg, 30.0) > 15.0 or np.any(np.abs(0.45 * whole.scale_up[:2] - 0.45) > 0.07)
+
+
+def test_box_covers_the_explained_points_not_label_bleed() -> None:
+    """The box grows over the object's points that the CAD explains (star legs 4 cm longer than the model's), not
+    over a strip of floor the labels bled onto 20 cm behind the chair (10 % of the instance's points)."""
+    model = _model(_swivel_chair(0.0))
+    chair = _scan(_swivel_chair(0.0, leg_m=0.37), 0.0, np.zeros(3))
+    rng = np.random.default_rng(0)
+    bleed = np.column_stack([rng.uniform(-0.2, 0.2, 400), rng.uniform(-0.55, -0.5, 400), np.full(400, 0.005)])
+    x = np.zeros(7)  # the model where it was made: yaw 0, scale 1, its bottom centre where the mesh has it
+    x[1:3] = model.bottom_up[:2]
+    grown = _cover_footprint(x, np.vstack([chair, bleed]), model, AutoCadConfig().cover_explained_m)
+    half = model.extent_up[:2] * np.exp(grown[4:6]) / 2.0
+    lo, hi = grown[1:3] - half, grown[1:3] + half
+    assert model.bottom_up[0] + model.extent_up[0] / 2.0 < 0.34   # the model's leg along +x ends at 0.33
+    assert hi[0] >= 0.345, hi                               # grown towards the scan's, at 0.37 (a few points)
+    assert lo[1] > -0.40, lo                                # the bleed is not (the legs reach -0.35)
+
+
+def _instance(scores: dict[str, float], i: int = 0) -> InstanceResult:
+    fits = [ModelFit(cad, np.eye(4), np.zeros((0, 3)), 0.0, np.ones(3), SYM_NONE, s, Fit(0.01, 0.9, 0.01, 0.9, s))
+            for cad, s in sorted(scores.items(), key=lambda kv: kv[1])]
+    return InstanceResult(i, "chair", 1000, np.zeros(3), fits, fits[0])
+
+
+def test_instances_of_a_class_share_the_common_model_within_the_margin() -> None:
+    c = AutoCadConfig()
+    results = [_instance({"A": 0.060, "B": 0.066}), _instance({"A": 0.050, "B": 0.070}),
+               _instance({"A": 0.063, "B": 0.060}),   # B better by 5 %: noise, takes the common A
+               _instance({"A": 0.080, "B": 0.070})]   # B better by 14 %: another chair, keeps B
+    prefer_common_models(results, [c] * len(results))
+    assert [r.accepted.cad_id for r in results] == ["A", "A", "A", "B"]
+    assert results[2].to_dict()["chosen"] == "A" and results[2].to_dict()["best"]["cad_id"] == "B"
+    # margin 0: each instance its own best; a lone instance of a class is never changed
+    results = [_instance({"A": 0.063, "B": 0.060}), _instance({"A": 0.050, "B": 0.070})]
+    prefer_common_models(results, [c.model_copy(update={"same_model_margin": 0.0})] * 2)
+    assert [r.accepted.cad_id for r in results] == ["B", "A"]
+    lone = [_instance({"A": 0.063, "B": 0.060})]
+    prefer_common_models(lone, [c])
+    assert lone[0].accepted.cad_id == "B"
+    # the common model must pass at the instance to be taken
+    results = [_instance({"A": 0.050, "B": 0.070}), _instance({"A": 0.061, "B": 0.060})]
+    results[1].fits[1].fit = Fit(0.2, 0.1, 0.2, 0.1, 0.061)
+    prefer_common_models(results, [c] * 2)
+    assert results[1].accepted.cad_id == "B"

@@ -60,6 +60,7 @@ _SYMMETRY_SAMPLES = 3000
 _MODEL_SAMPLES = 6000       # surface samples per model kept for the search (a random fit_points of them per job)
 _FIT_SAMPLES = 20000        # CAD samples of the final CAD -> scan distances
 _SCALE_RANGE = 1.6          # the ICP may change each scale by at most this factor from its box-derived start
+_MIN_FIT_POINTS = 30        # fewer points above the base than this: fit the whole instance (or model) instead
 
 
 # --- the library ------------------------------------------------------------------------------------------------
@@ -265,6 +266,7 @@ class InstanceResult:
         return {"instance": self.instance, "class": self.cls, "points": self.points,
                 "center": [round(float(x), 4) for x in self.center],
                 "accepted": self.accepted is not None,
+                "chosen": None if self.accepted is None else self.accepted.cad_id,
                 "best": None if best is None else {"cad_id": best.cad_id, **best.fit.to_dict()},
                 "models": {f.cad_id: f.fit.to_dict() for f in self.fits}}
 
@@ -436,15 +438,22 @@ def measure_fit(points: np.ndarray, vertices_map: np.ndarray, faces: np.ndarray,
                float(np.mean(d_cad <= c.inlier_m)), score)
 
 
-def _cover_footprint(x: np.ndarray, points: np.ndarray, m: ModelData) -> np.ndarray:
-    """Grow the horizontal scales (and shift the centre) so the CAD's box covers the instance's footprint along the
-    fitted axes (robust percentiles): a library model is rarely the scanned object, and a model that fits part of it
-    snugly leaves the rest outside its box, while the box is what the object node and the enhancement use."""
+def _cover_footprint(x: np.ndarray, points: np.ndarray, m: ModelData, explained_m: float) -> np.ndarray:
+    """Grow the horizontal scales (and shift the centre) so the CAD's box covers the footprint of the instance's
+    points that the fitted CAD explains (within explained_m of its surface samples; robust 0.5–99.5 % along the
+    fitted axes): a library model is rarely the scanned object, and a model that fits part of it snugly leaves the
+    rest outside its box, while the box is what the object node and the enhancement use. Points farther from the
+    CAD are left out, not trimmed by a fixed share: the labels bleed onto walls and floors by more than a few per
+    cent of an instance's points, while a swivel chair's star legs, sparse but real, are a few per cent too."""
+    d = cKDTree(_apply(x, m.samples_up)).query(points, distance_upper_bound=explained_m)[0]
+    explained = points[np.isfinite(d)]
+    if len(explained) < _MIN_FIT_POINTS:
+        return x
     R2 = _Rz(x[0])[:2, :2]
-    local = (points[:, :2] - x[1:3]) @ R2
+    local = (explained[:, :2] - x[1:3]) @ R2
     half = m.extent_up[:2] * np.exp(x[4:6]) / 2.0
-    lo = np.minimum(-half, np.percentile(local, 3.0, axis=0))
-    hi = np.maximum(half, np.percentile(local, 97.0, axis=0))
+    lo = np.minimum(-half, np.percentile(local, 0.5, axis=0))
+    hi = np.maximum(half, np.percentile(local, 99.5, axis=0))
     y = x.copy()
     y[1:3] = x[1:3] + R2 @ ((lo + hi) / 2.0)
     y[4:6] = np.log((hi - lo) / m.extent_up[:2])
@@ -465,23 +474,36 @@ def _distinct_best(hyps: list[np.ndarray], scores: list[float], k: int, period_d
     return picked
 
 
+def _above_base(points: np.ndarray, bottom_z: float, height_m: float, fraction: float) -> np.ndarray:
+    """The points (m, 3) higher than `fraction` of height_m above bottom_z; all of them when fewer than
+    _MIN_FIT_POINTS would be left (a flat object: nothing above its base but its top)."""
+    upper = points[points[:, 2] > bottom_z + fraction * height_m]
+    return upper if len(upper) >= _MIN_FIT_POINTS else points
+
+
 def fit_model(points: np.ndarray, support_z: float, m: ModelData, c: AutoCadConfig) -> ModelFit:
-    """Best upright alignment of one model to one instance (points (n, 3) float64, map frame); `fit` unset."""
+    """Best upright alignment of one model to one instance (points (n, 3) float64, map frame); `fit` unset.
+
+    The footprint and height of the hypotheses come from all the instance's points; the yaw, scale and translation
+    are then searched and refined on the parts above the base (`AutoCadConfig.base_fraction`) of both sides."""
     rng = np.random.default_rng(c.seed)
     p = points if len(points) <= c.fit_points else points[rng.choice(len(points), c.fit_points, replace=False)]
     q = m.samples_up[rng.choice(len(m.samples_up), min(c.fit_points, len(m.samples_up)), replace=False)]
-    p_tree = cKDTree(p)
+    top_z = float(np.percentile(points[:, 2], 99.5))
+    p_up = _above_base(p, support_z, top_z - support_z, c.base_fraction)
+    q_up = _above_base(q, 0.0, float(m.extent_up[2]), c.base_fraction)
+    p_tree = cKDTree(p_up)
     tau = c.score_truncation_m
     hyps = [_initial_params(p, yaw, support_z, m) for yaw in _yaw_hypotheses(p, m.sym, c.yaw_sweep_deg)]
-    scores = [_chamfer(x, q, p, p_tree, tau) for x in hyps]
+    scores = [_chamfer(x, q_up, p_up, p_tree, tau) for x in hyps]
     best_x, best_score = None, np.inf
     for k in _distinct_best(hyps, scores, c.refine_hypotheses, _YAW_PERIOD_DEG[m.sym]):
-        x = _icp(hyps[k], q, p, p_tree, c)
-        s = _chamfer(x, q, p, p_tree, tau)
+        x = _icp(hyps[k], q_up, p_up, p_tree, c)
+        s = _chamfer(x, q_up, p_up, p_tree, tau)
         if s < best_score:
             best_x, best_score = x, s
     if c.cover_footprint:
-        best_x = _cover_footprint(best_x, points, m)
+        best_x = _cover_footprint(best_x, points, m, c.cover_explained_m)
     return ModelFit(m.cad_id, _A_map_cad(best_x, m.bottom_up), _apply(best_x, m.vertices_up),
                     float(np.degrees(best_x[0])), np.exp(best_x[4:7]), m.sym, best_score)
 
@@ -512,12 +534,45 @@ def align_instances(jobs: list[AlignJob], workers: int) -> list[InstanceResult]:
     parallel = (workers > 1 and len(jobs) > 1 and not multiprocessing.current_process().daemon
                 and "fork" in multiprocessing.get_all_start_methods())
     if not parallel:
-        return [_judge(j, search_instance(j)) for j in jobs]
-    order = sorted(range(len(jobs)), key=lambda i: -len(jobs[i].points) * len(jobs[i].models))
-    with ProcessPoolExecutor(max_workers=min(workers, len(jobs)),
-                             mp_context=multiprocessing.get_context("fork")) as pool:
-        found = dict(zip(order, pool.map(search_instance, [jobs[i] for i in order])))
-    return [_judge(jobs[i], found[i]) for i in range(len(jobs))]
+        results = [_judge(j, search_instance(j)) for j in jobs]
+    else:
+        order = sorted(range(len(jobs)), key=lambda i: -len(jobs[i].points) * len(jobs[i].models))
+        with ProcessPoolExecutor(max_workers=min(workers, len(jobs)),
+                                 mp_context=multiprocessing.get_context("fork")) as pool:
+            found = dict(zip(order, pool.map(search_instance, [jobs[i] for i in order])))
+        results = [_judge(jobs[i], found[i]) for i in range(len(jobs))]
+    prefer_common_models(results, [j.config for j in jobs])
+    return results
+
+
+def prefer_common_models(results: list[InstanceResult], configs: list[AutoCadConfig]) -> None:
+    """Give the instances of a class one model where the evidence allows (in place; `configs` per result).
+
+    The common model of a class is the one whose truncated Chamfer scores, each relative to its instance's accepted
+    fit, sum lowest over the class's accepted instances; an instance takes it when it passes there and scores within
+    `same_model_margin` of the instance's accepted fit. A room's chairs are mostly of one kind, and one partly seen
+    chair is weak evidence between similar models: a few per cent of score is noise of the subsets and the unseen
+    parts, not a different chair. A clearly better fit (another kind of chair) keeps its own model.
+    """
+    by_cls: dict[str, list[int]] = {}
+    for i, r in enumerate(results):
+        if r.accepted is not None:
+            by_cls.setdefault(r.cls, []).append(i)
+    for idx in by_cls.values():
+        if len(idx) < 2:
+            continue
+        relative: dict[str, float] = {}
+        for i in idx:
+            for f in results[i].fits:
+                relative[f.cad_id] = relative.get(f.cad_id, 0.0) + f.score / max(results[i].accepted.score, 1e-9)
+        common = min(sorted(relative), key=relative.get)  # sorted: ties go the same way in every build
+        for i in idx:
+            r, c = results[i], configs[i]
+            f = next((f for f in r.fits if f.cad_id == common), None)
+            if f is not None and f.fit.passes(c) and f.score <= (1.0 + c.same_model_margin) * r.accepted.score:
+                r.accepted = f
+
+
 # --- Scan2CAD output --------------------------------------------------------------------------------------------
 
 
