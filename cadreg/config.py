@@ -265,6 +265,12 @@ class RegionConfig(_Section):
                             "recently used dropped): a worker's memory is bounded by this, not by the building")
     max_verified: int = Field(8, ge=1, description="regions whose best graph hypotheses go on to the coarse GICP: "
                               "the graph match ranks regions, and only the best are verified and refined")
+    tie_margin: float = Field(0.06, ge=0, le=1, description="regions whose best graph hypothesis ranks within this "
+                              "of the best region's are all verified (repeated rooms tie): none is dropped unseen")
+    screen_per_region: int = Field(3, ge=1, description="hypotheses of every region kept through the quick screen "
+                                   "besides MatchConfig.screen_keep overall")
+    halo_m: float = Field(3.0, ge=0, description="a region's refinement map also holds its neighbours' points this "
+                          "far outside its box: γ (RefineConfig.roi_radius_m) covers the whole region of interest")
 
 
 class LocalizeConfig(_Section):

@@ -60,9 +60,6 @@ SLIDE_TOLERANCE = 0.01
 YAW_NORMAL_POINTS = 1000
 # An object's top is the 98th percentile of its points along up: the highest 2 % are mixed pixels and noise.
 TOP_PERCENTILE = 98
-# Without the frame's points at hand, a pose's region is the one this far ahead of the camera lies in (camera
-# frame, metres): about where a room-scale frame's points are centred.
-LOOK_AHEAD_CAMERA = np.array([0.0, 0.0, 1.5])
 
 
 class Localizer:
@@ -107,10 +104,14 @@ class Localizer:
             maps=RegionMaps(site, config),
         )
 
-    def maps_at(self, T_map_camera: np.ndarray, center_camera: np.ndarray = LOOK_AHEAD_CAMERA) -> RegionIndex:
-        """The search structures of the region a pose looks into: the region holding `center_camera` (the
-        frame's centre, camera frame) placed by the pose."""
+    def maps_at(self, T_map_camera: np.ndarray, center_camera: np.ndarray) -> RegionIndex:
+        """The search structures of the region that holds the pose's region of interest: the frame's centre
+        (`center_camera`, colour-camera frame) placed by the pose (`regions.py`)."""
         return self.maps.at(T_map_camera[:3, :3] @ center_camera + T_map_camera[:3, 3])
+
+    def region_of(self, T_map_camera: np.ndarray) -> str:
+        """The id of the region the camera of a pose stands in (what a hypothesis names)."""
+        return self.maps.region_at(T_map_camera[:3, 3]).id
 
     @property
     def refine_map(self) -> RefineMap:
@@ -131,7 +132,7 @@ class Localizer:
     def view_check(self) -> ViewCheck:
         """The free-space check of a one-room site (a building's are per region: `maps_at`)."""
         if len(self.maps) != 1:
-            raise InvalidArgument("a site of several regions has a free-space check per region: use maps_at(T)")
+            raise InvalidArgument("a site of several regions has a free-space check per region: use maps_at")
         return self.maps.index(self.maps.regions[0]).view_check
 
     def warm(self) -> "Localizer":
@@ -249,13 +250,17 @@ class Localizer:
         classes = np.array([c.cls for c in scan.clusters])
         screen_xyz = scan.score_xyz[: max(MIN_SCREEN_POINTS, len(scan.score_xyz) // SCREEN_SHARE)]
         screen = score_poses(self.field, screen_xyz, hyp.R, hyp.t, tau_m=mc.score_tau_m)
-        hyp = hyp.take(np.argsort(-screen)[: mc.screen_keep])
+        hyp = hyp.take(self._screened(hyp, screen))
         score_graph(hyp, centroids, classes, self.graph, match_radius_m=mc.match_radius_m,
                     edge_max_m=self.site.edge_max_m, alpha=mc.alpha, beta=mc.beta)
         hyp.geometric = score_poses(self.field, scan.score_xyz, hyp.R, hyp.t, tau_m=mc.score_tau_m)
         rank = hyp.geometric * (1.0 - mc.sim_weight + mc.sim_weight * hyp.sim)
-        keep = distinct_best(hyp.R, hyp.t, self._best_regions(hyp, np.argsort(-rank)), count=mc.candidates,
-                             min_translation_m=mc.distinct_translation_m, min_rotation_deg=mc.distinct_rotation_deg)
+        if len(self.maps) == 1:
+            keep = distinct_best(hyp.R, hyp.t, np.argsort(-rank), count=mc.candidates,
+                                 min_translation_m=mc.distinct_translation_m, min_rotation_deg=mc.distinct_rotation_deg)
+            return hyp.take(np.array(keep, dtype=np.int64))
+        keep, unverified = self._region_candidates(hyp, rank)
+        scan.unverified = [self._unverified_hypothesis(hyp, i) for i in unverified]
         return hyp.take(np.array(keep, dtype=np.int64))
 
     def _within_search(self, hyp: Hypotheses, scan: Scan) -> Hypotheses:
@@ -264,17 +269,55 @@ class Localizer:
             return hyp
         return hyp.take(np.flatnonzero(scan.search.allows(hyp.t, self.maps.regions)))
 
-    def _best_regions(self, hyp: Hypotheses, order: np.ndarray) -> np.ndarray:
-        """`order` (hypothesis indices, best first) kept to the RegionConfig.max_verified regions whose best
-        hypothesis ranks highest: the graph match ranks the regions, and only the best are verified (each costs
-        its region's search structures)."""
-        if len(self.maps) == 1 or not len(order):
-            return order
-        node = hyp.seed[order, 1]
-        region = np.where(node >= 0, self.node_region[np.maximum(node, 0)], -1)
-        _, first = np.unique(region, return_index=True)
-        best = region[np.sort(first)[: self.config.regions.max_verified]]
-        return order[np.isin(region, best)]
+    def _seed_regions(self, hyp: Hypotheses) -> np.ndarray:
+        """(h,) int: the region of the map node each hypothesis was seeded by (-1 for none): what groups the
+        graph's hypotheses by room without a look-up per hypothesis."""
+        node = hyp.seed[:, 1]
+        return np.where(node >= 0, self.node_region[np.maximum(node, 0)], -1)
+
+    def _screened(self, hyp: Hypotheses, screen: np.ndarray) -> np.ndarray:
+        """Indices of the hypotheses kept after the quick screen: the MatchConfig.screen_keep best and, in a
+        building, also the RegionConfig.screen_per_region best of every region, so that a room the screen's few
+        points rank a little lower (repeated rooms tie) still has its hypotheses scored."""
+        order = np.argsort(-screen)
+        keep = order[: self.config.match.screen_keep]
+        if len(self.maps) == 1:
+            return keep
+        region = self._seed_regions(hyp)[order]
+        by_region = np.argsort(region, kind="stable")  # positions in `order`, grouped by region, best first
+        start = np.searchsorted(region[by_region], region[by_region], side="left")
+        in_region_rank = np.arange(len(by_region)) - start
+        per_region = order[by_region[in_region_rank < self.config.regions.screen_per_region]]
+        return np.union1d(keep, per_region)
+
+    def _region_candidates(self, hyp: Hypotheses, rank: np.ndarray) -> tuple[list[int], list[int]]:
+        """The graph match ranks regions (DESIGN §1): every region whose best hypothesis ranks within
+        RegionConfig.tie_margin of the best region's is verified (up to RegionConfig.max_verified; beyond, its
+        best hypothesis is returned unverified: the answer cannot be ok while it stands), and the remaining
+        candidate places go to the distinct best hypotheses of the verified regions.
+        Returns (indices to verify, indices of tied regions' best hypotheses left unverified)."""
+        mc, rg = self.config.match, self.config.regions
+        order = np.argsort(-rank)
+        region = self._seed_regions(hyp)
+        _, first = np.unique(region[order], return_index=True)
+        region_best = order[np.sort(first)]  # the best hypothesis of each region, best region first
+        tied = region_best[rank[region_best] >= rank[order[0]] - rg.tie_margin]
+        keep = [int(i) for i in tied[: rg.max_verified]]
+        verified = region[region_best[: max(rg.max_verified, 1)]]
+        for i in distinct_best(hyp.R, hyp.t, order[np.isin(region[order], verified)], count=mc.candidates,
+                               min_translation_m=mc.distinct_translation_m, min_rotation_deg=mc.distinct_rotation_deg):
+            if len(keep) >= max(mc.candidates, len(tied[: rg.max_verified])):
+                break
+            if i not in keep and all(self._distinct(hyp.T(i), hyp.T(k)) for k in keep):
+                keep.append(i)
+        return keep, [int(i) for i in tied[rg.max_verified:]]
+
+    def _unverified_hypothesis(self, hyp: Hypotheses, i: int) -> Hypothesis:
+        """A graph hypothesis reported as it is (no coarse GICP): a tied room there was no budget to verify."""
+        T = hyp.T(i)
+        return Hypothesis(T, float(hyp.sim[i]), float(hyp.s_v[i]), float(hyp.s_e[i]), float(hyp.geometric[i]),
+                          matches=[(int(k), self.graph.ids[a]) for k, a in enumerate(hyp.assignment[i]) if a >= 0],
+                          source="graph:unverified", region=self.region_of(T))
 
     def _graph_hypotheses(self, scan: Scan) -> Hypotheses:
         """With up known: pairs fix yaw and translation, single objects sweep yaw; without: triples by Kabsch."""
@@ -405,6 +448,9 @@ class Localizer:
         if unexamined:
             diag.notes.append(f"{len(unexamined)} more distinct hypotheses as close as the refined ones were not refined")
             has_rival, margin = True, 0.0
+        if scan.unverified:
+            diag.notes.append(f"{len(scan.unverified)} more regions tied with the best and were not verified")
+            has_rival, margin = True, 0.0
         _, out, winner, see = refined[0]
         fitness, rmse = self.maps_at(out.T_map_camera, center_camera).refine_map.fitness(
             transform_points(out.T_map_camera, scan.check_xyz), inlier_m=rc.inlier_m)
@@ -461,8 +507,16 @@ class Localizer:
             best = replace(winner.hypothesis, T_map_camera=T)
             return LocalizationResult(Status.UNCERTAIN, None, confidence=trust, hypotheses=[best] + hypotheses[:top_k - 1],
                                       diagnostics=diag, frame_id=frame_id)
+        if status == Status.AMBIGUOUS:
+            hypotheses += self._rivals(candidates[top_k:], choice) + scan.unverified
         return LocalizationResult(status, T, confidence=trust,
                                   covariance=out.covariance, hypotheses=hypotheses, diagnostics=diag, frame_id=frame_id)
+
+    def _rivals(self, rest: list[Candidate], choice: Choice) -> list[Hypothesis]:
+        """Candidates beyond top_k that an ambiguous answer still lists: every distinct one within the ambiguity
+        margin of the best (a client must see every room a repeated view may be in, not only the first few)."""
+        best = choice.candidate.score
+        return [c.hypothesis for c in rest if best - c.score < self.config.match.ambiguity_margin]
 
     def _no_pose(self, scan: Scan, diag: Diagnostics, frame_id: str | None) -> LocalizationResult:
         """No hypothesis survived: `no_objects` when the frame showed none, else `no_match`."""
@@ -548,13 +602,13 @@ class Localizer:
         scored = lambda values: len(values) == len(hyp)  # noqa: E731  (fallback hypotheses carry no Sim terms)
         out = []
         for i in range(len(hyp)):
-            T = self._maps(hyp.T(i), scan).refine_map.coarse_align(source, hyp.T(i))
+            T = self.maps_at(hyp.T(i), scan.center_camera).refine_map.coarse_align(source, hyp.T(i))
             score = self._agreement_score(T, scan)
             assignment = hyp.assignment[i] if scored(hyp.assignment) else np.zeros(0, dtype=np.int64)
             h = Hypothesis(T, float(hyp.sim[i]) if scored(hyp.sim) else 0.0, float(hyp.s_v[i]) if scored(hyp.s_v) else 0.0,
                            float(hyp.s_e[i]) if scored(hyp.s_e) else 0.0, score,
                            matches=[(int(k), self.graph.ids[a]) for k, a in enumerate(assignment) if a >= 0],
-                           source=origin, region=self._maps(T, scan).region.id)
+                           source=origin, region=self.region_of(T))
             out.append(Candidate(T, score, h, assignment))
         return out
 
@@ -562,12 +616,9 @@ class Localizer:
         """Geometric fitness weighted by label and colour agreement of the scan's fit sample placed by T: geometry
         alone cannot tell a wall from the opposite wall or a chair seen from above turned by 90°."""
         mc = self.config.match
-        geo, sem, col = self._maps(T_map_camera, scan).refine_map.agreement(transform_points(T_map_camera, scan.fit_xyz), scan.fit_rgb,
+        geo, sem, col = self.maps_at(T_map_camera, scan.center_camera).refine_map.agreement(transform_points(T_map_camera, scan.fit_xyz), scan.fit_rgb,
                                                   scan.fit_cls, inlier_m=self.config.refine.inlier_m)
         return geo * (1.0 - mc.semantic_weight + mc.semantic_weight * sem) * (1.0 - mc.color_weight + mc.color_weight * col)
-
-    def _maps(self, T_map_camera: np.ndarray, scan: Scan) -> RegionIndex:
-        return self.maps_at(T_map_camera, LOOK_AHEAD_CAMERA if scan.center_camera is None else scan.center_camera)
 
     def _distinct(self, Ta: np.ndarray, Tb: np.ndarray) -> bool:
         mc = self.config.match

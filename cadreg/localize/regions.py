@@ -1,6 +1,12 @@
 """Per-region search structures of a site: what the refinement, the agreement score and the free-space check of
 one pose need, built for the region the pose looks into rather than for the whole building (DESIGN §1).
 
+A pose's region is the one that holds the centre of its region of interest (the frame's centroid placed by the
+pose, paper §2.5). The region's structures hold the map points inside its box grown by `RegionConfig.halo_m`
+(points of neighbouring regions included): with a halo of γ, the ROI radius, the whole ROI of any pose whose
+centre lies in the region is covered, so a view from one room into the next through a doorway or an unscanned
+wall is refined against both, as it would be against the whole map.
+
 A one-room site has one region and its structures are built once, up front, as before regions existed. A
 building's regions are built on first use and kept in a least-recently-used cache of `RegionConfig.max_cached`
 regions, so that a worker's memory is bounded by the cache, not by the building.
@@ -39,9 +45,26 @@ def region_cloud(site: Site, region: Region, which: str) -> PointSet:
     return raw if which == "raw" else PointSet.concat([raw, enhanced])
 
 
-def build_index(site: Site, region: Region, config: LocalizeConfig) -> RegionIndex:
+def halo_cloud(site: Site, regions: list[Region], region: Region, which: str, halo_m: float) -> PointSet:
+    """The points of cloud `which` inside `region`'s box grown by halo_m: its own and its neighbours' (a region's
+    points are a slice of the site's clouds, so only the regions whose boxes reach the grown box are read)."""
+    lo, hi = region.bounds[0] - halo_m, region.bounds[1] + halo_m
+    parts = []
+    for r in regions:
+        if np.any(r.bounds[1] < lo) or np.any(r.bounds[0] > hi):
+            continue
+        cloud = region_cloud(site, r, which)
+        if r is not region:
+            xyz = cloud.points
+            cloud = cloud.take(np.all((xyz >= lo) & (xyz <= hi), axis=1))
+        parts.append(cloud)
+    return PointSet.concat(parts)
+
+
+def build_index(site: Site, regions: list[Region], region: Region, config: LocalizeConfig) -> RegionIndex:
     rc = config.refine
-    cloud = region_cloud(site, region, rc.map_points)
+    cloud = (region_cloud(site, region, rc.map_points) if len(regions) == 1
+             else halo_cloud(site, regions, region, rc.map_points, config.regions.halo_m))
     refine_map = RefineMap(cloud.points.astype(np.float64), cloud.rgb01(), cloud.class_index,
                            fine_voxel_m=rc.fine_voxel_m, coarse_voxel_m=rc.coarse_voxel_m,
                            color_scales_m=rc.color_scales_m, color_weight_m=rc.color_weight_m)
@@ -51,8 +74,7 @@ def build_index(site: Site, region: Region, config: LocalizeConfig) -> RegionInd
 class RegionMaps:
     """The site's regions and their search structures.
 
-    `at(xyz)` is the index of the region a map point lies in (the nearest region's when it lies in none): a pose's
-    region is the one its region of interest's centre falls in.
+    `at(xyz)` is the index of the region a map point lies in (the nearest region's when it lies in none).
     """
 
     def __init__(self, site: Site, config: LocalizeConfig) -> None:
@@ -71,14 +93,19 @@ class RegionMaps:
 
     def region_at(self, xyz: np.ndarray) -> Region:
         """The region whose box holds the point xyz ((3,) map frame) seen from above; else the nearest box."""
+        return self.regions[int(self.indices_at(np.asarray(xyz, dtype=np.float64)[None])[0])]
+
+    def indices_at(self, xyz: np.ndarray) -> np.ndarray:
+        """xyz : (n, 3) map points -> (n,) int index into `regions` of the region each lies in (`region_at`)."""
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         if len(self.regions) == 1:
-            return self.regions[0]
-        p = np.asarray(xyz, dtype=np.float64)[:2]
-        # Horizontal distance from the point to each box (0 inside); ties (overlapping boxes) go to the box
-        # whose centre is nearest.
-        gap = np.maximum(np.maximum(self._lo[:, :2] - p, p - self._hi[:, :2]), 0.0)
-        centre = np.linalg.norm(0.5 * (self._lo[:, :2] + self._hi[:, :2]) - p, axis=1)
-        return self.regions[int(np.lexsort((centre, np.linalg.norm(gap, axis=1)))[0])]
+            return np.zeros(len(xyz), dtype=np.int64)
+        p = xyz[:, None, :2]
+        # Horizontal distance from each point to each box (0 inside); among boxes at the same distance
+        # (overlapping boxes) the one whose centre is nearest.
+        gap = np.linalg.norm(np.maximum(np.maximum(self._lo[None, :, :2] - p, p - self._hi[None, :, :2]), 0.0), axis=2)
+        centre = np.linalg.norm(0.5 * (self._lo[None, :, :2] + self._hi[None, :, :2]) - p, axis=2)
+        return np.argmin(gap + 1e-6 * centre / (1.0 + centre), axis=1)
 
     def at(self, xyz: np.ndarray) -> RegionIndex:
         return self.index(self.region_at(xyz))
@@ -89,7 +116,7 @@ class RegionMaps:
         if found is not None:
             self._cache.move_to_end(region.id)
             return found
-        found = self._cache[region.id] = build_index(self.site, region, self.config)
+        found = self._cache[region.id] = build_index(self.site, self.regions, region, self.config)
         self.built += 1
         while len(self._cache) > max(1, self.config.regions.max_cached):
             self._cache.popitem(last=False)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -43,6 +43,10 @@ class Scan:
     check_xyz : (≤ check_points, 3) float64 sample of `points` for the final fitness.
     zbuf : coarse z-buffer of `points` (`score.ViewCheck.zbuffer`) for the free-space check; K : the depth
         intrinsics it was projected with. None for scans built without a frame.
+    center_camera : (3,) centroid of `points`: the centre of the region of interest (paper §2.5), whose region
+    a pose is refined in (`Localizer.maps_at`). search : the client's search region (Frame.search_region).
+    unverified : in a building, the best hypotheses of rooms that tied with the best but were not verified (more
+    tied than RegionConfig.max_verified): rivals the answer did not rule out.
     """
 
     points: FramePoints
@@ -57,8 +61,9 @@ class Scan:
     check_xyz: np.ndarray
     zbuf: np.ndarray | None = None
     K: object | None = None
-    center_camera: np.ndarray | None = None  # (3,) centroid of `points`: where a pose's region is looked up
+    center_camera: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.5]))  # centroid of `points`
     search: SearchRegion | None = None  # the client's search region (Frame.search_region)
+    unverified: list[Hypothesis] = field(default_factory=list)  # tied rooms beyond RegionConfig.max_verified
 
 
 @dataclass
