@@ -6,6 +6,7 @@ sites with no Scan2CAD annotation.
                                                             covers (made by cadreg.site.build.auto_cad_placements
                                                             from the build's class-wise clustering)
     align_instances(jobs, workers) -> [InstanceResult]      best model per instance, on `workers` processes
+    prefer_common_models(results, configs)                  one model for a class's instances where the fits allow
     scan2cad_record(id_scan, placements) -> dict            the alignments as a Scan2CAD record (identity scan trs)
 
 Furniture stands upright on the floor (maps are z up), so a fit has 7 parameters, not 10: yaw, translation and an
@@ -17,10 +18,14 @@ anisotropic scale. Per instance and model:
    a slab);
 3. a truncated two-way Chamfer score ranks the hypotheses; the best few (with distinct yaws) are refined by ICP
    restricted to yaw, horizontal translation and horizontal scales (nearest neighbours both ways from scipy's
-   cKDTree, each step a robust scipy least_squares), and the box then grown to cover the instance's footprint;
-4. the fit of the best one is measured against the instance both ways (median distance, coverage), with exact
-   point-to-mesh distances (Open3D RaycastingScene), and the model is kept when it passes `AutoCadConfig`'s
-   thresholds; else the instance stays a cluster node.
+   cKDTree, each step a robust scipy least_squares). Score and ICP see only the parts above the base (the lowest
+   `base_fraction` of the height, scan and model): legs and swivel bases differ most between models of a class and
+   turn apart from the seat. The box is then grown over the instance's points the CAD explains;
+4. the fit of each model is measured against the instance both ways (median distance, coverage), with exact
+   point-to-mesh distances (Open3D RaycastingScene), and the best model is kept when it passes `AutoCadConfig`'s
+   thresholds; else the instance stays a cluster node;
+5. the instances of a class take the class's common model where it fits within `same_model_margin` of their best
+   (`prefer_common_models`): a room's chairs are mostly of one kind.
 Open3D's ICP estimates rigid or similarity transforms only (full rotation, one scale): an upright pose with three
 scales is no estimator of it, hence the small hand-written ICP loop around least_squares.
 """
