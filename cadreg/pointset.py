@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InvalidArgument, InvalidFileError
-from .io.ply import parse_ply, ply_bytes
+from .io.ply import map_vertices, parse_ply, ply_bytes, release_pages
 
 SOURCE_RAW = 0
 SOURCE_CAD = 1
@@ -100,6 +100,25 @@ class PointSet:
         return ply_bytes(vertex)
 
     @classmethod
+    def open_ply(cls, path: str | Path) -> tuple["PointSet", "MappedRows"]:
+        """The PointSet of a PLY written by `to_ply_bytes`, memory-mapped: its columns are read-only views of the
+        file, paged in as they are used (a building's map costs a worker only the rooms it touches), and the
+        `MappedRows` hands pages back. Raises InvalidFileError naming `path` for another layout."""
+        rec, mm, body_start = map_vertices(path)
+        names = [c for cols, _ in _COLUMNS.values() for c in cols]
+        if list(rec.dtype.names) != names or any(
+                rec.dtype[c] != np.dtype(dtype).newbyteorder("<") for cols, dtype in _COLUMNS.values() for c in cols):
+            raise InvalidFileError(path, f"vertex columns must be {names} with the dtypes of cadreg/pointset.py")
+        values = {}
+        for name, (cols, dtype) in _COLUMNS.items():
+            first = rec[cols[0]]
+            # Columns of one attribute lie side by side in each record: one strided (N, k) view, no copy.
+            values[name] = (np.lib.stride_tricks.as_strided(first, shape=(len(rec), len(cols)),
+                                                            strides=(rec.strides[0], first.itemsize), writeable=False)
+                            if len(cols) > 1 else first)
+        return cls(**values), MappedRows(mm, body_start, rec.itemsize)
+
+    @classmethod
     def from_ply_bytes(cls, blob: bytes, path: str | Path = "<bytes>") -> "PointSet":
         """Parse a PLY written by `to_ply_bytes`. Raises InvalidFileError naming `path` for a malformed file or
         missing columns."""
@@ -112,3 +131,17 @@ class PointSet:
             stacked = np.stack([vertex[c] for c in cols], axis=1) if len(cols) > 1 else vertex[cols[0]]
             values[name] = stacked.astype(dtype)
         return cls(**values)
+
+
+@dataclass(frozen=True)
+class MappedRows:
+    """Where a memory-mapped PointSet's rows lie in its file (`PointSet.open_ply`): `release(rows)` hands the
+    pages of those rows back to the kernel once they have been copied (they leave the resident set, and are read
+    again from the page cache when next used)."""
+
+    mm: object
+    offset: int
+    itemsize: int
+
+    def release(self, rows: slice) -> None:
+        release_pages(self.mm, self.offset + rows.start * self.itemsize, self.offset + rows.stop * self.itemsize)

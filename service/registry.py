@@ -24,7 +24,7 @@ from pathlib import Path, PurePosixPath
 from typing import IO, Any
 
 from cadreg.errors import BundleIntegrityError, CadregError, InputError, InvalidFileError, PayloadTooLarge, UnknownSite
-from cadreg.site.bundle import DATA_FILES
+from cadreg.site.bundle import DATA_FILES, OPTIONAL_FILES
 
 from .logs import log_event
 
@@ -33,7 +33,7 @@ log = logging.getLogger("cadreg.service.registry")
 STAGING_DIR = ".incoming"
 SITE_ID_RULE = "^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$"
 _SITE_ID = re.compile(SITE_ID_RULE)
-BUNDLE_FILES = ("site.json", *DATA_FILES)  # all an archive may install: site.json and the files it references
+BUNDLE_FILES = ("site.json", *DATA_FILES, *OPTIONAL_FILES)  # all an archive may install: site.json and the files it references
 MAX_ARCHIVE_MEMBERS = 10_000
 _COPY_CHUNK = 1024 * 1024
 _UPLOAD = "upload"  # what an archive is called in messages: never a server path

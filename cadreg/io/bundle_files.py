@@ -7,11 +7,14 @@ moves bytes, so that the core's file access stays in `cadreg/io/`.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import tempfile
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from ..errors import InvalidFileError
 
@@ -49,6 +52,22 @@ def read_bytes(path: str | Path) -> bytes:
         return path.read_bytes()
     except OSError as exc:
         raise InvalidFileError(path, f"cannot read: {exc.strerror or exc}") from exc
+
+
+def npy_bytes(array: np.ndarray) -> bytes:
+    """The bytes of `array` as a .npy file (deterministic for the same array)."""
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(array), allow_pickle=False)
+    return buf.getvalue()
+
+
+def map_npy(path: str | Path) -> np.ndarray:
+    """A .npy file memory-mapped read-only (no pickle); InvalidFileError naming it when it is not one."""
+    path = Path(path)
+    try:
+        return np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise InvalidFileError(path, f"not a readable .npy array: {exc}") from exc
 
 
 def write_bundle_dir(out_dir: str | Path, files: dict[str, bytes]) -> None:

@@ -11,6 +11,8 @@ only for some layouts. PLY is simple enough that a header parser plus numpy stru
 
 from __future__ import annotations
 
+import mmap
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -207,6 +209,40 @@ def read_ply(path: str | Path) -> PlyData:
     except OSError as exc:
         raise InvalidFileError(path, f"cannot read: {exc.strerror or exc}") from exc
     return parse_ply(blob, path)
+
+
+def map_vertices(path: str | Path) -> tuple[np.ndarray, mmap.mmap, int]:
+    """The vertex element of a binary little-endian PLY whose only element is `vertex` with scalar properties,
+    memory-mapped read-only: ((N,) structured array over the file's pages, the mmap, the byte offset of the first
+    vertex). Nothing is read until it is
+    used, and the pages a reader no longer needs can be handed back (`release_pages`). Raises InvalidFileError
+    naming the file when it is not such a PLY or is shorter than its header says."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(1 << 16)
+            size = os.fstat(fh.fileno()).st_size
+            mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) if size else None
+    except OSError as exc:
+        raise InvalidFileError(path, f"cannot read: {exc.strerror or exc}") from exc
+    fmt, elements, body_start = _parse_header(path, head)
+    if fmt != "binary_little_endian" or [e.name for e in elements] != ["vertex"] or any(
+            len(p) != 2 for p in elements[0].props):
+        raise InvalidFileError(path, "not a binary little-endian PLY of scalar vertex properties")
+    el = elements[0]
+    dtype = np.dtype([(p[0], "<" + p[1]) for p in el.props])
+    if mm is None or body_start + dtype.itemsize * el.count > size:
+        raise InvalidFileError(path, f"element 'vertex' declares {el.count} entries but the file is shorter")
+    return np.frombuffer(mm, dtype=dtype, count=el.count, offset=body_start), mm, body_start
+
+
+def release_pages(mm: mmap.mmap, start: int, stop: int) -> None:
+    """Tell the kernel the mapped bytes [start, stop) of a read-only file map are not needed now: they leave the
+    process's resident set and are read again from the page cache when next used."""
+    page = mmap.PAGESIZE
+    lo = (start // page) * page
+    if stop > lo and hasattr(mm, "madvise") and hasattr(mmap, "MADV_DONTNEED"):
+        mm.madvise(mmap.MADV_DONTNEED, lo, min(stop, len(mm)) - lo)
 
 
 def parse_ply(blob: bytes, path: str | Path = "<bytes>") -> PlyData:

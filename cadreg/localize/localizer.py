@@ -26,6 +26,7 @@ from ..errors import InvalidArgument, InvalidFrame
 from ..frame import Frame
 from ..geometry import rotation_angle_deg, rotation_between, transform_points
 from ..result import Diagnostics, Hypothesis, LocalizationResult, Match, Refinement, Roi, ScanObject, Status
+from ..pointset import PointSet
 from ..site.bundle import Site
 from ..site.regions import CAMERA_MARGIN_M
 from .cluster import cluster_objects
@@ -35,7 +36,7 @@ from .gravity import estimate_floor, map_floor_height, map_up_axis, planar_norma
 from .match import Hypotheses, MapGraph, distinct_best, gravity_hypotheses, kabsch_hypotheses, score_graph
 from .points import FramePoints, frame_to_points, voxel_downsample
 from .refine import GICP_NEIGHBORS, REFINE_METHODS, RefineMap, RefineOutcome, crop_to_roi
-from .regions import RegionIndex, RegionMaps
+from .regions import RegionIndex, RegionMaps, region_cloud
 from .score import DistanceField, ViewCheck, score_poses
 from .stages import Candidate, Choice, Scan, StageTimer, answer_status, confidence, low_overlap_confidence
 from .tracking import Tracked, TrackState, track_frame
@@ -89,19 +90,25 @@ class Localizer:
 
     @classmethod
     def from_site(cls, site: Site, config: LocalizeConfig = LocalizeConfig()) -> "Localizer":
-        """Build every per-site search structure (distance field, small_gicp map, KD-trees) once."""
-        every = site.cloud("both")
-        every_xyz = every.points.astype(np.float64)
-        every_normals = every.normals.astype(np.float64)
+        """Build every per-site search structure (distance field, small_gicp map, KD-trees) once; in a building
+        (several regions) the field is the one the bundle stores, and the per-region structures are built on use."""
+        maps = RegionMaps(site, config)
+        surfaces = _surface_sample(site, maps)
+        surface_xyz = surfaces.points.astype(np.float64)
+        surface_normals = surfaces.normals.astype(np.float64)
         # From the map's surfaces: +z for ScanNet and the demo, not for KinectFusion maps.
-        up = map_up_axis(every_normals)
+        up = map_up_axis(surface_normals)
         up = up / np.linalg.norm(up)
+        if site.field_grid is not None:
+            field = DistanceField.from_grid(site.field_grid)
+        else:
+            field = DistanceField(surface_xyz if len(maps) == 1 else site.cloud("both").points.astype(np.float64))
         return cls(
             site, config, up=up,
-            floor_height_m=map_floor_height(every_xyz, every_normals, up),
+            floor_height_m=map_floor_height(surface_xyz, surface_normals, up),
             graph=MapGraph.from_site(site, up),
-            field=DistanceField(every_xyz),
-            maps=RegionMaps(site, config),
+            field=field,
+            maps=maps,
         )
 
     def maps_at(self, T_map_camera: np.ndarray, center_camera: np.ndarray) -> RegionIndex:
@@ -153,10 +160,13 @@ class Localizer:
         first use, or by `warm`: about a second and (levels + 1) bytes a cell, LabelFreeConfig.max_cells at most)."""
         if self._pyramid is None:
             lf = self.config.label_free
-            every = self.site.cloud("both")
-            pyr = GridPyramid(self.field, every.points, self.up, voxel_m=lf.voxel_m, levels=lf.levels, tau_m=lf.tau_m,
+            # A building's occupied cells come from its stored field: its points stay where they lie.
+            occupied = (self.site.cloud("both").points if len(self.maps) == 1
+                        else self.field.surface_points(lf.voxel_m / 2))
+            pyr = GridPyramid(self.field, occupied, self.up, voxel_m=lf.voxel_m, levels=lf.levels, tau_m=lf.tau_m,
                               reach_m=lf.reach_m, margin_m=lf.camera_margin_m, max_cells=lf.max_cells)
-            self._pyramid = (pyr, map_direction_histogram(every.normals.astype(np.float64) @ pyr.R_level_map.T))
+            normals = _surface_sample(self.site, self.maps).normals.astype(np.float64)
+            self._pyramid = (pyr, map_direction_histogram(normals @ pyr.R_level_map.T))
         return self._pyramid
 
     def fpfh(self) -> FpfhRansac:
@@ -624,6 +634,16 @@ class Localizer:
         mc = self.config.match
         return bool(np.linalg.norm(Ta[:3, 3] - Tb[:3, 3]) > mc.distinct_translation_m
                     or rotation_angle_deg(Ta[:3, :3].T @ Tb[:3, :3]) > mc.distinct_rotation_deg)
+
+
+def _surface_sample(site: Site, maps: RegionMaps) -> PointSet:
+    """The map points the site-wide constants (up direction, floor height, wall directions) are measured on: all of
+    a one-room site; in a building its largest region (its rooms share the floor and, turned by quarter turns,
+    the wall directions), so that loading a building does not read all of it."""
+    if len(maps) == 1:
+        return site.cloud("both")
+    largest = max(maps.regions, key=lambda r: r.points)
+    return region_cloud(site, largest, "both")
 
 
 def _voxel_budget(points: FramePoints, voxel_m: float, budget: int) -> FramePoints:

@@ -49,7 +49,7 @@ def halo_cloud(site: Site, regions: list[Region], region: Region, which: str, ha
     """The points of cloud `which` inside `region`'s box grown by halo_m: its own and its neighbours' (a region's
     points are a slice of the site's clouds, so only the regions whose boxes reach the grown box are read)."""
     lo, hi = region.bounds[0] - halo_m, region.bounds[1] + halo_m
-    parts = []
+    parts, read = [], []
     for r in regions:
         if np.any(r.bounds[1] < lo) or np.any(r.bounds[0] > hi):
             continue
@@ -58,7 +58,14 @@ def halo_cloud(site: Site, regions: list[Region], region: Region, which: str, ha
             xyz = cloud.points
             cloud = cloud.take(np.all((xyz >= lo) & (xyz <= hi), axis=1))
         parts.append(cloud)
-    return PointSet.concat(parts)
+        read.append(r)
+    out = PointSet.concat(parts)
+    # Copied: a memory-mapped building hands the pages it read back (they would stay resident otherwise, and a
+    # worker that has localized in every room would hold the whole building).
+    for r in read:
+        site.release("map", slice(*r.map_range))
+        site.release("raw", slice(*r.raw_range))
+    return out
 
 
 def build_index(site: Site, regions: list[Region], region: Region, config: LocalizeConfig) -> RegionIndex:

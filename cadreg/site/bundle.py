@@ -8,9 +8,12 @@ Bundle layout (DESIGN §3), self-describing, no pickle:
                 class as an index into `classes`, source)
     raw.ply     the raw scan points kept for refinement, the same columns (instance -1, source raw)
     graph.json  nodes and edges of the semantic graph
+    field.npy   (optional, buildings) the distance field over the whole map, built once when the site is composed
+                (`FieldGrid`): loading it is a memory map, not a rebuild
 
-`version` is the first 12 hex digits of the sha256 over the sorted "name:sha256" lines of map.ply, raw.ply and
-graph.json: the same content gives the same version, a rebuilt or replaced site a new one.
+`version` is the first 12 hex digits of the sha256 over the sorted "name:sha256" lines of map.ply, raw.ply,
+graph.json (and field.npy when present): the same content gives the same version, a rebuilt or replaced site a new
+one.
 `Site.load` checks every hash and raises BundleIntegrityError naming the file that does not match.
 """
 
@@ -25,14 +28,15 @@ import numpy as np
 
 from ..config import GraphConfig
 from ..errors import BundleIntegrityError, ConfigError, InvalidFileError, InvalidFrame
-from ..io.bundle_files import read_bytes, read_json, sha256_bytes, write_bundle_dir
+from ..io.bundle_files import map_npy, npy_bytes, read_bytes, read_json, sha256_bytes, sha256_file, write_bundle_dir
 from ..labels import labels_to_class_index
-from ..pointset import PointSet
+from ..pointset import MappedRows, PointSet
 from .graph import ObjectNode, SemanticGraph  # noqa: F401  (ObjectNode is part of this module's API)
 from .regions import Region, from_manifest, region_from_points, to_manifest
 
 SCHEMA = "cadreg.site/1"
 DATA_FILES = ("map.ply", "raw.ply", "graph.json")
+OPTIONAL_FILES = ("field.npy",)
 CLOUDS = ("raw", "enhanced", "both")
 
 
@@ -40,6 +44,23 @@ def version_of(file_hashes: dict[str, str]) -> str:
     """Content version: 12 hex digits of sha256 over the sorted "name:sha256" lines."""
     text = "\n".join(f"{k}:{file_hashes[k]}" for k in sorted(file_hashes))
     return sha256_bytes(text.encode())[:12]
+
+
+@dataclass(frozen=True, eq=False)
+class FieldGrid:
+    """A stored distance field (field.npy): grid (I, J, K) uint8, the distance from each cell to the nearest map
+    point in steps of truncate_m / 255 (255 = truncate_m or farther), with a one-cell border at 255; the cell
+    (i, j, k) of the grid holds the voxel whose lower corner is origin + (i − 1, j − 1, k − 1) · voxel_m (map frame,
+    metres). Built by `cadreg.localize.score.building_field`, read by `DistanceField.from_grid`."""
+
+    grid: np.ndarray
+    origin: np.ndarray
+    voxel_m: float
+    truncate_m: float
+
+    def to_manifest(self) -> dict[str, Any]:
+        return {"origin": [float(x) for x in self.origin], "voxel_m": float(self.voxel_m),
+                "truncate_m": float(self.truncate_m), "shape": [int(x) for x in self.grid.shape]}
 
 
 @dataclass(eq=False)  # arrays inside: compare sites by version, not with ==
@@ -61,6 +82,14 @@ class Site:
     graph: SemanticGraph
     classes: list[str]
     label_maps: dict[str, dict[int, str]] = field(default_factory=dict)
+    mapped_rows: dict[str, MappedRows] = field(default_factory=dict, repr=False)
+    field_grid: FieldGrid | None = None  # a building's stored distance field (field.npy); None: built at load
+
+    def release(self, which: str, rows: slice) -> None:
+        """Hand back the pages of rows of a memory-mapped cloud ("map" | "raw") once they have been copied; nothing
+        for a site read into memory."""
+        if which in self.mapped_rows:
+            self.mapped_rows[which].release(rows)
 
     # --- queries -------------------------------------------------------------------------------------------------
 
@@ -78,8 +107,8 @@ class Site:
         """The site's regions (`regions.py`): the rooms of a composed site as site.json lists them, else one
         region holding the whole map, named after the site."""
         entries = self.manifest.get("regions")
-        if not entries:
-            return [whole_site_region(self)]
+        if not entries or len(entries) == 1:
+            return [whole_site_region(self, entries[0].get("id") if entries else None)]
         return from_manifest(entries, map_points=len(self.map), raw_points=len(self.raw))
 
     def region_of_node(self) -> dict[str, str]:
@@ -111,11 +140,14 @@ class Site:
 
     def encode_data_files(self) -> dict[str, bytes]:
         """The bytes of map.ply, raw.ply and graph.json (deterministic: same content, same bytes)."""
-        return {
+        files = {
             "map.ply": self.map.to_ply_bytes(),
             "raw.ply": self.raw.to_ply_bytes(),
             "graph.json": json.dumps(self.graph.to_dict(), indent=1, sort_keys=True).encode(),
         }
+        if self.field_grid is not None:
+            files["field.npy"] = npy_bytes(self.field_grid.grid)
+        return files
 
     def refresh_version(self) -> dict[str, bytes]:
         """Recompute `version` and bring `manifest` up to date with the content (what site.json will hold: schema,
@@ -124,8 +156,17 @@ class Site:
         hashes = {k: sha256_bytes(v) for k, v in files.items()}
         self.version = version_of(hashes)
         meta = dict(self.manifest)
-        if not meta.get("regions"):
-            meta["regions"] = to_manifest([whole_site_region(self)])
+        meta.pop("field", None)
+        if self.field_grid is not None:
+            meta["field"] = self.field_grid.to_manifest()
+        regions = meta.get("regions")
+        if not regions or len(regions) == 1:
+            # One region is the whole site: measured again from the clouds as they are now (a site whose clouds
+            # were edited since its regions were written keeps no stale box or ranges).
+            region_id = regions[0]["id"] if regions else self.site_id
+            meta["regions"] = to_manifest([whole_site_region(self, region_id)])
+        else:
+            from_manifest(regions, map_points=len(self.map), raw_points=len(self.raw))
         meta.update({
             "schema": SCHEMA,
             "site_id": self.site_id,
@@ -151,17 +192,30 @@ class Site:
         `verify`, every data file's sha256 (files are hashed, not parsed). Raises InvalidFileError or
         BundleIntegrityError naming the file. For runners that need a site's id, version and counts
         (`meta["counts"]`) without loading its arrays."""
-        return _read_checked(Path(site_dir), verify=verify)[0]
+        return _read_checked(Path(site_dir), verify=verify, keep=())[0]
 
     @classmethod
-    def load(cls, site_dir: str | Path) -> "Site":
+    def load(cls, site_dir: str | Path, *, mapped: bool | None = None) -> "Site":
         """Read and verify a bundle. Raises InvalidFileError (missing/malformed file) or BundleIntegrityError (a file
-        whose sha256 differs from site.json, or a version that does not match the hashes), naming the file."""
+        whose sha256 differs from site.json, or a version that does not match the hashes), naming the file.
+
+        mapped : memory-map map.ply and raw.ply instead of reading them (read-only columns, paged in as used; see
+        `PointSet.open_ply`); None = for a site of several regions (a building: a worker touches the rooms it
+        localizes in, not the whole building)."""
         root = Path(site_dir)
         meta_path = root / "site.json"
-        meta, blobs = _read_checked(root, verify=True)
-        enhanced = PointSet.from_ply_bytes(blobs["map.ply"], root / "map.ply")
-        raw = PointSet.from_ply_bytes(blobs["raw.ply"], root / "raw.ply")
+        if mapped is None:
+            head = read_json(meta_path)
+            mapped = isinstance(head, dict) and isinstance(head.get("regions"), list) and len(head["regions"]) > 1
+        clouds = ("map.ply", "raw.ply")
+        meta, blobs = _read_checked(root, verify=True, keep=("graph.json",) if mapped else ("graph.json", *clouds))
+        rows: dict[str, MappedRows] = {}
+        if mapped:
+            (enhanced, rows["map"]), (raw, rows["raw"]) = (PointSet.open_ply(root / name) for name in clouds)
+        else:
+            enhanced = PointSet.from_ply_bytes(blobs["map.ply"], root / "map.ply")
+            raw = PointSet.from_ply_bytes(blobs["raw.ply"], root / "raw.ply")
+        stored_field = _stored_field(root, meta) if "field.npy" in meta["files"] else None
         try:
             graph = SemanticGraph.from_dict(json.loads(blobs["graph.json"]))
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
@@ -175,21 +229,39 @@ class Site:
             if (cloud.class_index >= len(classes)).any():
                 raise InvalidFileError(root / name, f"class indices beyond the {len(classes)} classes of site.json")
         site = cls(site_id=str(meta["site_id"]), version=str(meta["version"]), manifest=meta, map=enhanced, raw=raw,
-                   graph=graph, classes=classes, label_maps=label_maps)
+                   graph=graph, classes=classes, label_maps=label_maps, mapped_rows=rows, field_grid=stored_field)
         if meta.get("regions"):
             from_manifest(meta["regions"], map_points=len(enhanced), raw_points=len(raw), source=str(meta_path))
         return site
 
 
-def whole_site_region(site: Site) -> Region:
-    """One region holding all of `site`, named after it."""
-    return region_from_points(site.site_id, [site.map.points, site.raw.points], [n.id for n in site.graph.nodes],
-                              (0, len(site.map)), (0, len(site.raw)))
+def _stored_field(root: Path, meta: dict[str, Any]) -> FieldGrid:
+    """The field.npy of a bundle, memory-mapped and checked against site.json's "field"."""
+    path = root / "field.npy"
+    grid = map_npy(path)
+    try:
+        info = meta["field"]
+        origin = np.asarray(info["origin"], dtype=np.float64).reshape(3)
+        voxel_m, truncate_m = float(info["voxel_m"]), float(info["truncate_m"])
+        ok = (grid.dtype == np.uint8 and grid.ndim == 3 and list(grid.shape) == list(info["shape"])
+              and voxel_m > 0 and truncate_m > 0 and np.all(np.isfinite(origin)))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InvalidFileError(root / "site.json", f"malformed 'field': {exc!r}") from None
+    if not ok:
+        raise InvalidFileError(path, "not the uint8 grid site.json's 'field' describes")
+    return FieldGrid(grid, origin, voxel_m, truncate_m)
 
 
-def _read_checked(root: Path, *, verify: bool) -> tuple[dict[str, Any], dict[str, bytes]]:
-    """(site.json, {data file: bytes}) of the bundle at `root`; the blobs only when `verify` (they are read to be
-    hashed, and `Site.load` parses the same bytes rather than reading them twice)."""
+def whole_site_region(site: Site, region_id: str | None = None) -> Region:
+    """One region holding all of `site`, named `region_id` (default: after the site)."""
+    return region_from_points(region_id or site.site_id, [site.map.points, site.raw.points],
+                              [n.id for n in site.graph.nodes], (0, len(site.map)), (0, len(site.raw)))
+
+
+def _read_checked(root: Path, *, verify: bool, keep: tuple[str, ...] = DATA_FILES) -> tuple[dict[str, Any], dict[str, bytes]]:
+    """(site.json, {data file: bytes}) of the bundle at `root`; with `verify`, every data file is hashed, and the
+    bytes of those named in `keep` are returned (`Site.load` parses the same bytes rather than reading them twice);
+    the others are hashed as a stream, never held whole."""
     meta_path = root / "site.json"
     meta = read_json(meta_path)
     if not isinstance(meta, dict) or meta.get("schema") != SCHEMA:
@@ -198,16 +270,17 @@ def _read_checked(root: Path, *, verify: bool) -> tuple[dict[str, Any], dict[str
         if key not in meta:
             raise InvalidFileError(meta_path, f"missing key {key!r}")
     hashes = meta["files"]
-    if not isinstance(hashes, dict) or set(hashes) != set(DATA_FILES):
-        raise InvalidFileError(meta_path, f"'files' must list exactly {list(DATA_FILES)}")
+    if not isinstance(hashes, dict) or not set(DATA_FILES) <= set(hashes) <= set(DATA_FILES + OPTIONAL_FILES):
+        raise InvalidFileError(meta_path, f"'files' must list {list(DATA_FILES)} (and may list {list(OPTIONAL_FILES)})")
     if version_of(hashes) != meta["version"]:
         raise BundleIntegrityError(meta_path, f"version {meta['version']!r} does not match the file hashes")
     blobs: dict[str, bytes] = {}
     if verify:
-        for name in DATA_FILES:
-            blob = read_bytes(root / name)
-            if sha256_bytes(blob) != hashes[name]:
+        for name in sorted(hashes):
+            blob = read_bytes(root / name) if name in keep else None
+            if (sha256_file(root / name) if blob is None else sha256_bytes(blob)) != hashes[name]:
                 raise BundleIntegrityError(root / name, "sha256 does not match site.json: the file was modified "
                                            "or belongs to another build")
-            blobs[name] = blob
+            if blob is not None:
+                blobs[name] = blob
     return meta, blobs

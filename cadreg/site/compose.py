@@ -29,6 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from ..errors import ConfigError, InvalidFileError
 from ..geometry import is_rigid, transform_points
+from ..localize.score import building_field
 from ..pointset import PointSet
 from .bundle import Site
 from .graph import ObjectNode, build_graph
@@ -161,8 +162,11 @@ def compose_site(layout: Layout, root: str | Path) -> Site:
     manifest["inputs"] = {"composed": [{"name": r.entry.name, "bundle": r.entry.bundle, "site_id": r.site.site_id,
                                         "version": r.site.version, "T_building_room": r.entry.T_building_room,
                                         "drop_objects": list(r.entry.drop_objects)} for r in rooms]}
+    # The building's distance field is built here, room by room, and stored: a worker maps it instead of
+    # rebuilding it over the whole building at every start.
+    field_grid = building_field([np.concatenate([m.points, r.points]) for m, r in zip(maps, raws)])
     site = Site(site_id=layout.site_id, version="", manifest=manifest, map=PointSet.concat(maps),
                 raw=PointSet.concat(raws), graph=build_graph(nodes, first.edge_max_m), classes=list(first.classes),
-                label_maps=dict(first.label_maps))
+                label_maps=dict(first.label_maps), field_grid=field_grid)
     site.refresh_version()
     return site

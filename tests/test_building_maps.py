@@ -1,0 +1,122 @@
+"""A building's maps (issue 10): the distance field is built room by room when the site is composed and stored
+(field.npy, hashed like the other files), the clouds are memory-mapped at load (read-only, paged in as used),
+each region's refinement map holds its neighbours' points within the halo, and rooms that tie with the best are
+all verified or, beyond the budget, reported unverified and never answered `ok`. Two copies of the real scene0470
+room (tests/tracking_rooms.py), the second missing a chair and the bin."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cadreg.config import LocalizeConfig, RegionConfig
+from cadreg.errors import BundleIntegrityError
+from cadreg.io.frames import RecordedFrames
+from cadreg.localize.localizer import Localizer
+from cadreg.localize.regions import halo_cloud, region_cloud
+from cadreg.localize.score import DistanceField, building_field
+from cadreg.result import Status
+from cadreg.site.bundle import Site
+from tracking_rooms import render_turn, twin_site
+
+pytestmark = pytest.mark.realdata
+
+
+@pytest.fixture(scope="module")
+def twin_dir(scene0470_site_dir: Path, tmp_path_factory) -> Path:
+    return twin_site(scene0470_site_dir, tmp_path_factory.mktemp("twin-maps"))
+
+
+@pytest.fixture(scope="module")
+def shared_view(scene0470_dir: Path, tmp_path_factory):
+    out = render_turn(scene0470_dir / "scene0470_00_vh_clean_2.ply", scene0470_dir / "scene0470_00_vh_clean_2.labels.ply",
+                      tmp_path_factory.mktemp("shared-view-maps"), n=30)
+    return RecordedFrames.open(out).load(0)
+
+
+def test_the_stored_field_is_the_whole_maps_field(twin_dir: Path) -> None:
+    site = Site.load(twin_dir)
+    assert site.field_grid is not None and site.field_grid.grid.dtype == np.uint8
+    every = site.cloud("both").points.astype(np.float64)
+    exact = DistanceField(every, max_cells=10**9)
+    stored = DistanceField.from_grid(site.field_grid)
+    assert stored.voxel_m == exact.voxel_m and np.allclose(stored.origin, exact.origin)
+    rng = np.random.default_rng(0)
+    lo, hi = every.min(axis=0) - 0.5, every.max(axis=0) + 0.5
+    probes = np.concatenate([rng.uniform(lo, hi, size=(20000, 3)), every[rng.choice(len(every), 5000)]
+                             + rng.normal(scale=0.05, size=(5000, 3))])
+    # one byte a cell: within half a step (truncate / 255 / 2 ≈ 1 mm) of the exact transform, everywhere
+    assert np.max(np.abs(stored.lookup(probes) - exact.lookup(probes))) <= stored.step_m / 2 + 1e-6
+
+
+def test_building_field_over_separate_clouds_matches_one_transform() -> None:
+    rng = np.random.default_rng(1)
+    a = rng.uniform([0, 0, 0], [2, 2, 1], size=(3000, 3))
+    b = rng.uniform([2.2, 0, 0], [4, 2, 1], size=(3000, 3))  # 0.2 m apart: their fields overlap
+    grid = building_field([a, b], voxel_m=0.05)
+    exact = DistanceField(np.concatenate([a, b]), voxel_m=0.05)
+    probes = rng.uniform([-0.5, -0.5, -0.5], [4.5, 2.5, 1.5], size=(20000, 3))
+    assert np.max(np.abs(DistanceField.from_grid(grid).lookup(probes) - exact.lookup(probes))) <= 0.5 / 255 / 2 + 1e-6
+
+
+def test_a_building_is_memory_mapped_read_only_and_its_field_is_hashed(twin_dir: Path, tmp_path: Path) -> None:
+    mapped, read = Site.load(twin_dir), Site.load(twin_dir, mapped=False)
+    assert mapped.mapped_rows and not read.mapped_rows
+    for a, b in ((mapped.map, read.map), (mapped.raw, read.raw)):
+        assert np.array_equal(a.points, b.points) and np.array_equal(a.class_index, b.class_index)
+        assert not a.points.flags.writeable
+    mapped.release("map", slice(0, len(mapped.map)))  # pages handed back are read again on use
+    assert np.array_equal(mapped.map.points, read.map.points)
+    bad = tmp_path / "bad"
+    shutil.copytree(twin_dir, bad)
+    grid = np.load(bad / "field.npy")
+    grid[5, 5, 5] ^= 1
+    np.save(bad / "field.npy", grid)
+    with pytest.raises(BundleIntegrityError, match="field.npy"):
+        Site.load(bad)
+
+
+def test_a_regions_map_holds_its_neighbours_within_the_halo(twin_dir: Path) -> None:
+    site = Site.load(twin_dir)
+    a, b = site.regions
+    own = region_cloud(site, a, "raw")
+    gap = b.bounds[0][0] - a.bounds[1][0]
+    assert len(halo_cloud(site, site.regions, a, "raw", halo_m=gap / 2)) == len(own)  # the halo stops short of b
+    halo = halo_cloud(site, site.regions, a, "raw", halo_m=gap + 1.0)
+    borrowed = halo.points[len(own):].astype(float)
+    assert len(borrowed) > 0 and np.all(borrowed[:, 0] >= b.bounds[0][0] - 1e-4)
+    assert np.all(borrowed[:, 0] <= a.bounds[1][0] + gap + 1.0 + 1e-4)
+
+
+def test_tied_rooms_beyond_the_budget_are_reported_unverified_and_the_answer_is_not_ok(twin_dir: Path,
+                                                                                         shared_view) -> None:
+    frame, _ = shared_view
+    site = Site.load(twin_dir)
+    both = Localizer.from_site(site).localize(frame)
+    assert both.status == Status.AMBIGUOUS
+    assert {h.region for h in both.hypotheses if h.source == "graph"} == {"a", "b"}
+    one = Localizer.from_site(site, LocalizeConfig(regions=RegionConfig(max_verified=1))).localize(frame)
+    assert one.status == Status.AMBIGUOUS
+    unverified = [h for h in one.hypotheses if h.source == "graph:unverified"]
+    assert len(unverified) == 1 and unverified[0].region in ("a", "b")
+    assert any("not verified" in n for n in one.diagnostics.notes)
+
+
+def test_region_structures_are_bounded_by_the_cache(twin_dir: Path, shared_view) -> None:
+    frame, _ = shared_view
+    loc = Localizer.from_site(Site.load(twin_dir), LocalizeConfig(regions=RegionConfig(max_cached=1)))
+    loc.localize(frame)
+    assert len(loc.maps.cached()) == 1 and loc.maps.built >= 2  # both rooms were verified, one is kept
+    out = loc.localize(replace(frame, labels=None))
+    assert out.status in (Status.AMBIGUOUS, Status.UNCERTAIN, Status.OK, Status.LOW_OVERLAP)
+    assert len(loc.maps.cached()) == 1
+
+
+def test_site_json_describes_the_field(twin_dir: Path) -> None:
+    meta = json.loads((twin_dir / "site.json").read_text())
+    assert "field.npy" in meta["files"] and meta["field"]["shape"] == list(np.load(twin_dir / "field.npy").shape)
