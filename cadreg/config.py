@@ -261,7 +261,7 @@ class TrackConfig(_Section):
 class RegionConfig(_Section):
     """Regions of a building-scale site (`localize/regions.py`): the rooms a frame may be in."""
 
-    max_cached: int = Field(16, ge=1, description="regions whose refinement maps a localizer keeps built (least "
+    max_cached: int = Field(8, ge=1, description="regions whose refinement maps a localizer keeps built (least "
                             "recently used dropped): a worker's memory is bounded by this, not by the building")
     max_verified: int = Field(8, ge=1, description="regions whose best graph hypotheses go on to the coarse GICP: "
                               "the graph match ranks regions, and only the best are verified and refined")

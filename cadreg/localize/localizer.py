@@ -28,7 +28,7 @@ from ..geometry import rotation_angle_deg, rotation_between, transform_points
 from ..result import Diagnostics, Hypothesis, LocalizationResult, Match, Refinement, Roi, ScanObject, Status
 from ..pointset import PointSet
 from ..site.bundle import Site
-from ..site.regions import CAMERA_MARGIN_M
+from ..site.regions import CAMERA_MARGIN_M, Region
 from .cluster import cluster_objects
 from .bbs import GridPyramid, map_direction_histogram, polish, yaw_candidates
 from .fallback import FpfhRansac
@@ -370,10 +370,11 @@ class Localizer:
         best = max((c.score for c in candidates), default=0.0)
         if fb.enabled and best < fb.min_graph_fitness:
             with timer("fallback"):
+                rooms = self._candidate_regions(candidates)
                 for name in FALLBACKS:
                     if name == "fpfh-ransac" and scan.floor is not None and self.config.label_free.enabled:
                         break
-                    found = self._fallback(name, scan, diag.notes)
+                    found = self._fallback(name, scan, diag.notes, rooms)
                     if found is not None:
                         found = self._within_search(found, scan)
                         # A pose the graph has already found stays the graph's (it carries the matches).
@@ -535,12 +536,25 @@ class Localizer:
         return LocalizationResult(Status.NO_MATCH if seen else Status.NO_OBJECTS, diagnostics=diag, frame_id=frame_id)
 
     # --- helpers ------------------------------------------------------------------------------------------------
-    def _fallback(self, name: str, scan: Scan, notes: list[str]) -> Hypotheses | None:
+    def _candidate_regions(self, candidates: list[Candidate]) -> list[Region]:
+        """In a building, the regions of the graph's candidates (at most RegionConfig.max_verified, best first):
+        where the label-free search looks when the graph found something but nothing strong (a search over the
+        whole building costs as many rooms as it has). [] for a one-room site or when the graph found nothing."""
+        if len(self.maps) == 1:
+            return []
+        rooms: list[Region] = []
+        for c in sorted(candidates, key=lambda c: -c.score):
+            region = self.maps.region_at(c.T_map_camera[:3, 3])
+            if region not in rooms:
+                rooms.append(region)
+        return rooms[: self.config.regions.max_verified]
+
+    def _fallback(self, name: str, scan: Scan, notes: list[str], rooms: list[Region]) -> Hypotheses | None:
         """Hypotheses of one fallback method, or None when it cannot run (the label-free search needs up) or
         found nothing the frame's up direction allows."""
         fb, floor = self.config.fallback, scan.floor
         if name == "bbs":
-            return self._label_free(scan, notes)
+            return self._label_free(scan, notes, rooms)
         T, _ = self.fpfh().register(scan.down.xyz)
         if floor is not None:
             # FPFH + RANSAC knows nothing of gravity: on a bare wall it happily returns the camera upside down.
@@ -552,9 +566,10 @@ class Localizer:
         hyp.geometric = score_poses(self.field, scan.score_xyz, hyp.R, hyp.t, tau_m=self.config.match.score_tau_m)
         return hyp
 
-    def _label_free(self, scan: Scan, notes: list[str]) -> Hypotheses | None:
+    def _label_free(self, scan: Scan, notes: list[str], rooms: list[Region]) -> Hypotheses | None:
         """The label-free search (bbs.py): level the frame by its up, pick the yaws its walls allow, branch and
-        bound over (x, y, z, yaw); the distinct best leaves as hypotheses. None without an up direction."""
+        bound over (x, y, z, yaw) — over the client's search region, else over `rooms` (a building's candidate
+        regions), else over the whole site; the distinct best leaves as hypotheses. None without an up direction."""
         lf, floor = self.config.label_free, scan.floor
         if not lf.enabled or floor is None:
             return None
@@ -571,7 +586,7 @@ class Localizer:
             z_range = (z_level - 2 * lf.voxel_m, z_level + 2 * lf.voxel_m)
         points_level = scan.down.xyz[pick] @ R_up.T
         found = [pyr.search(points_level, yaws, z_range_level=z_range, box_level=box, keep_ratio=lf.keep_ratio,
-                            max_nodes=lf.max_nodes) for box in self._search_boxes(scan, pyr.R_level_map)]
+                            max_nodes=lf.max_nodes) for box in self._search_boxes(scan, pyr.R_level_map, rooms)]
         poses = np.concatenate([f[0] for f in found])
         scores = np.concatenate([f[1] for f in found])
         order = np.argsort(-scores, kind="stable")
@@ -589,14 +604,15 @@ class Localizer:
                      + (" (node cap reached)" if stats.capped else ""))
         return hyp if len(hyp) else None
 
-    def _search_boxes(self, scan: Scan, R_level_map: np.ndarray) -> list[np.ndarray | None]:
-        """Boxes (level frame, (2, 3) corners) of camera positions the label-free search covers: [None] (the
-        whole site) without a search region, else one per region named, or the client's ball."""
-        if scan.search is None:
+    def _search_boxes(self, scan: Scan, R_level_map: np.ndarray, rooms: list[Region]) -> list[np.ndarray | None]:
+        """Boxes (level frame, (2, 3) corners) of camera positions the label-free search covers: one per region
+        the client named, or the client's ball; without a search region one per room of `rooms`, or [None] (the
+        whole site) when there are none."""
+        if scan.search is None and not rooms:
             return [None]
-        if scan.search.region_ids:
-            boxes = [np.stack([r.bounds[0] - CAMERA_MARGIN_M, r.bounds[1] + CAMERA_MARGIN_M])
-                     for r in scan.search.resolve(self.maps.regions)]
+        if scan.search is None or scan.search.region_ids:
+            chosen = rooms if scan.search is None else scan.search.resolve(self.maps.regions)
+            boxes = [np.stack([r.bounds[0] - CAMERA_MARGIN_M, r.bounds[1] + CAMERA_MARGIN_M]) for r in chosen]
         else:
             boxes = [np.stack([scan.search.center - scan.search.radius_m, scan.search.center + scan.search.radius_m])]
         out = []

@@ -225,9 +225,11 @@ class Site:
             classes = [str(c) for c in meta["classes"]]
         except (TypeError, ValueError, AttributeError) as exc:
             raise InvalidFileError(meta_path, f"malformed label_maps or classes: {exc!r}") from exc
-        for name, cloud in (("map.ply", enhanced), ("raw.ply", raw)):
+        for name, cloud, which in (("map.ply", enhanced, "map"), ("raw.ply", raw, "raw")):
             if (cloud.class_index >= len(classes)).any():
                 raise InvalidFileError(root / name, f"class indices beyond the {len(classes)} classes of site.json")
+            if which in rows:  # checked: a mapped cloud's pages go back until a region needs them
+                rows[which].release(slice(0, len(cloud)))
         site = cls(site_id=str(meta["site_id"]), version=str(meta["version"]), manifest=meta, map=enhanced, raw=raw,
                    graph=graph, classes=classes, label_maps=label_maps, mapped_rows=rows, field_grid=stored_field)
         if meta.get("regions"):
