@@ -269,8 +269,8 @@ class Localizer:
             keep = distinct_best(hyp.R, hyp.t, np.argsort(-rank), count=mc.candidates,
                                  min_translation_m=mc.distinct_translation_m, min_rotation_deg=mc.distinct_rotation_deg)
             return hyp.take(np.array(keep, dtype=np.int64))
-        keep, unverified = self._region_candidates(hyp, rank)
-        scan.unverified = [self._unverified_hypothesis(hyp, i) for i in unverified]
+        keep, unverified = self._region_candidates(hyp, rank, self._seed_regions(hyp), count=mc.candidates)
+        scan.unverified = [self._unverified_hypothesis(hyp, i, "graph:unverified") for i in unverified]
         return hyp.take(np.array(keep, dtype=np.int64))
 
     def _within_search(self, hyp: Hypotheses, scan: Scan) -> Hypotheses:
@@ -300,34 +300,37 @@ class Localizer:
         per_region = order[by_region[in_region_rank < self.config.regions.screen_per_region]]
         return np.union1d(keep, per_region)
 
-    def _region_candidates(self, hyp: Hypotheses, rank: np.ndarray) -> tuple[list[int], list[int]]:
-        """The graph match ranks regions (DESIGN §1): every region whose best hypothesis ranks within
-        RegionConfig.tie_margin of the best region's is verified (up to RegionConfig.max_verified; beyond, its
-        best hypothesis is returned unverified: the answer cannot be ok while it stands), and the remaining
-        candidate places go to the distinct best hypotheses of the verified regions.
-        Returns (indices to verify, indices of tied regions' best hypotheses left unverified)."""
+    def _region_candidates(self, hyp: Hypotheses, rank: np.ndarray, region: np.ndarray, *,
+                           count: int) -> tuple[list[int], list[int]]:
+        """Hypotheses ranked by region (DESIGN §1: the coarse stage ranks regions): every region whose best
+        hypothesis ranks within RegionConfig.tie_margin of the best region's is verified (up to
+        RegionConfig.max_verified; beyond, its best hypothesis is returned unverified: the answer cannot be ok while
+        it stands), and the remaining of `count` places go to the distinct best hypotheses of the verified regions.
+        region : (h,) region index of each hypothesis. Returns (indices to verify, indices of tied regions' best
+        hypotheses left unverified)."""
         mc, rg = self.config.match, self.config.regions
         order = np.argsort(-rank)
-        region = self._seed_regions(hyp)
         _, first = np.unique(region[order], return_index=True)
         region_best = order[np.sort(first)]  # the best hypothesis of each region, best region first
         tied = region_best[rank[region_best] >= rank[order[0]] - rg.tie_margin]
         keep = [int(i) for i in tied[: rg.max_verified]]
         verified = region[region_best[: max(rg.max_verified, 1)]]
-        for i in distinct_best(hyp.R, hyp.t, order[np.isin(region[order], verified)], count=mc.candidates,
+        for i in distinct_best(hyp.R, hyp.t, order[np.isin(region[order], verified)], count=count,
                                min_translation_m=mc.distinct_translation_m, min_rotation_deg=mc.distinct_rotation_deg):
-            if len(keep) >= max(mc.candidates, len(tied[: rg.max_verified])):
+            if len(keep) >= max(count, len(tied[: rg.max_verified])):
                 break
             if i not in keep and all(self._distinct(hyp.T(i), hyp.T(k)) for k in keep):
                 keep.append(i)
         return keep, [int(i) for i in tied[rg.max_verified:]]
 
-    def _unverified_hypothesis(self, hyp: Hypotheses, i: int) -> Hypothesis:
-        """A graph hypothesis reported as it is (no coarse GICP): a tied room there was no budget to verify."""
+    def _unverified_hypothesis(self, hyp: Hypotheses, i: int, source: str) -> Hypothesis:
+        """A hypothesis reported as it is (no coarse GICP): a tied room there was no budget to verify."""
         T = hyp.T(i)
-        return Hypothesis(T, float(hyp.sim[i]), float(hyp.s_v[i]), float(hyp.s_e[i]), float(hyp.geometric[i]),
-                          matches=[(int(k), self.graph.ids[a]) for k, a in enumerate(hyp.assignment[i]) if a >= 0],
-                          source="graph:unverified", region=self.region_of(T))
+        term = lambda values: float(values[i]) if len(values) == len(hyp) else 0.0  # noqa: E731 (fallbacks: no Sim)
+        matches = ([(int(k), self.graph.ids[a]) for k, a in enumerate(hyp.assignment[i]) if a >= 0]
+                   if len(hyp.assignment) == len(hyp) else [])
+        return Hypothesis(T, term(hyp.sim), term(hyp.s_v), term(hyp.s_e), term(hyp.geometric), matches=matches,
+                          source=source, region=self.region_of(T))
 
     def _graph_hypotheses(self, scan: Scan) -> Hypotheses:
         """With up known: pairs fix yaw and translation, single objects sweep yaw; without: triples by Kabsch."""
@@ -512,6 +515,12 @@ class Localizer:
             diag.notes.append(f"fitness {choice.fitness:.2f} below {rc.min_fitness}")
             return LocalizationResult(Status.LOW_OVERLAP, None, confidence=low_overlap_confidence(choice.fitness),
                                       hypotheses=hypotheses, diagnostics=diag, frame_id=frame_id)
+        if status == Status.OK and len(self.maps) > 1 and winner.hypothesis.source.startswith("fallback") and (
+                scan.search_capped or winner.hypothesis.source == "fallback:fpfh-ransac"):
+            # In a building, a pose the geometry alone found, by a search cut at its node cap (or by FPFH + RANSAC,
+            # which keeps one pose): a room repeating the view elsewhere was never ruled out.
+            diag.notes.append("uncertain: the label-free search did not cover every room a repeated view may be in")
+            status = Status.UNCERTAIN
         if status == Status.UNCERTAIN:
             # Weak support: the refined pose goes first among the hypotheses, but it is not claimed.
             diag.notes.append(f"uncertain: confidence {trust:.2f}, see-through {choice.see_through:.2f}")
@@ -597,11 +606,20 @@ class Localizer:
             stats.capped |= f[2].capped
             stats.best = max(stats.best, f[2].best)
         mc = self.config.match
-        hyp = pyr.hypotheses(poses, scores, R_up, count=lf.candidates, min_translation_m=mc.distinct_translation_m,
+        # In a building the same view may fit in many rooms: more distinct leaves are kept (a room's own leaves
+        # would otherwise crowd its twins out), then ranked by room.
+        count = lf.candidates if len(self.maps) == 1 else lf.candidates * (1 + self.config.regions.max_verified)
+        hyp = pyr.hypotheses(poses, scores, R_up, count=count, min_translation_m=mc.distinct_translation_m,
                              min_rotation_deg=mc.distinct_rotation_deg)
         hyp = polish(self.field, scan.score_xyz, hyp, self.up, step_m=lf.voxel_m / 2, step_deg=lf.yaw_step_deg / 2)
+        if len(self.maps) > 1 and len(hyp):
+            keep, unverified = self._region_candidates(hyp, hyp.geometric, self.maps.indices_at(hyp.t),
+                                                       count=lf.candidates)
+            scan.unverified += [self._unverified_hypothesis(hyp, i, "fallback:bbs:unverified") for i in unverified]
+            hyp = hyp.take(np.array(keep, dtype=np.int64))
         notes.append(f"label-free search: {len(yaws)} yaws, {stats.nodes} nodes, best leaf {stats.best:.2f}"
                      + (" (node cap reached)" if stats.capped else ""))
+        scan.search_capped = scan.search_capped or stats.capped
         return hyp if len(hyp) else None
 
     def _search_boxes(self, scan: Scan, R_level_map: np.ndarray, rooms: list[Region]) -> list[np.ndarray | None]:
