@@ -44,3 +44,20 @@ def scene0470_site_dir(scene0470_dir: Path, tmp_path_factory: pytest.TempPathFac
     )
     site.save(out)
     return out
+
+
+@pytest.fixture(scope="session")
+def twin_rooms_dir(scene0470_site_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Two copies of the scene0470 room composed side by side, the second missing a chair and the bin
+    (tests/tracking_rooms.py), built once per test session."""
+    from tracking_rooms import twin_site
+
+    return twin_site(scene0470_site_dir, tmp_path_factory.mktemp("twin-rooms"))
+
+
+@pytest.fixture(scope="session")
+def twin_shared_view(scene0470_dir: Path, tmp_path_factory: pytest.TempPathFactory):
+    """(frame, T_map_camera in room "a") of a view both twin rooms show."""
+    from tracking_rooms import shared_view
+
+    return shared_view(scene0470_dir, tmp_path_factory.mktemp("twin-shared-view"))

@@ -16,31 +16,17 @@ import pytest
 
 from cadreg.config import LocalizeConfig, RegionConfig
 from cadreg.errors import BundleIntegrityError
-from cadreg.io.frames import RecordedFrames
 from cadreg.localize.localizer import Localizer
 from cadreg.localize.regions import halo_cloud, region_cloud
 from cadreg.localize.score import DistanceField, building_field
 from cadreg.result import Status
 from cadreg.site.bundle import Site
-from tracking_rooms import render_turn, twin_site
 
 pytestmark = pytest.mark.realdata
 
 
-@pytest.fixture(scope="module")
-def twin_dir(scene0470_site_dir: Path, tmp_path_factory) -> Path:
-    return twin_site(scene0470_site_dir, tmp_path_factory.mktemp("twin-maps"))
-
-
-@pytest.fixture(scope="module")
-def shared_view(scene0470_dir: Path, tmp_path_factory):
-    out = render_turn(scene0470_dir / "scene0470_00_vh_clean_2.ply", scene0470_dir / "scene0470_00_vh_clean_2.labels.ply",
-                      tmp_path_factory.mktemp("shared-view-maps"), n=30)
-    return RecordedFrames.open(out).load(0)
-
-
-def test_the_stored_field_is_the_whole_maps_field(twin_dir: Path) -> None:
-    site = Site.load(twin_dir)
+def test_the_stored_field_is_the_whole_maps_field(twin_rooms_dir: Path) -> None:
+    site = Site.load(twin_rooms_dir)
     assert site.field_grid is not None and site.field_grid.grid.dtype == np.uint8
     every = site.cloud("both").points.astype(np.float64)
     exact = DistanceField(every, max_cells=10**9)
@@ -64,8 +50,8 @@ def test_building_field_over_separate_clouds_matches_one_transform() -> None:
     assert np.max(np.abs(DistanceField.from_grid(grid).lookup(probes) - exact.lookup(probes))) <= 0.5 / 255 / 2 + 1e-6
 
 
-def test_a_building_is_memory_mapped_read_only_and_its_field_is_hashed(twin_dir: Path, tmp_path: Path) -> None:
-    mapped, read = Site.load(twin_dir), Site.load(twin_dir, mapped=False)
+def test_a_building_is_memory_mapped_read_only_and_its_field_is_hashed(twin_rooms_dir: Path, tmp_path: Path) -> None:
+    mapped, read = Site.load(twin_rooms_dir), Site.load(twin_rooms_dir, mapped=False)
     assert mapped.mapped_rows and not read.mapped_rows
     for a, b in ((mapped.map, read.map), (mapped.raw, read.raw)):
         assert np.array_equal(a.points, b.points) and np.array_equal(a.class_index, b.class_index)
@@ -73,7 +59,7 @@ def test_a_building_is_memory_mapped_read_only_and_its_field_is_hashed(twin_dir:
     mapped.release("map", slice(0, len(mapped.map)))  # pages handed back are read again on use
     assert np.array_equal(mapped.map.points, read.map.points)
     bad = tmp_path / "bad"
-    shutil.copytree(twin_dir, bad)
+    shutil.copytree(twin_rooms_dir, bad)
     grid = np.load(bad / "field.npy")
     grid[5, 5, 5] ^= 1
     np.save(bad / "field.npy", grid)
@@ -81,8 +67,8 @@ def test_a_building_is_memory_mapped_read_only_and_its_field_is_hashed(twin_dir:
         Site.load(bad)
 
 
-def test_a_regions_map_holds_its_neighbours_within_the_halo(twin_dir: Path) -> None:
-    site = Site.load(twin_dir)
+def test_a_regions_map_holds_its_neighbours_within_the_halo(twin_rooms_dir: Path) -> None:
+    site = Site.load(twin_rooms_dir)
     a, b = site.regions
     own = region_cloud(site, a, "raw")
     gap = b.bounds[0][0] - a.bounds[1][0]
@@ -93,10 +79,10 @@ def test_a_regions_map_holds_its_neighbours_within_the_halo(twin_dir: Path) -> N
     assert np.all(borrowed[:, 0] <= a.bounds[1][0] + gap + 1.0 + 1e-4)
 
 
-def test_tied_rooms_beyond_the_budget_are_reported_unverified_and_the_answer_is_not_ok(twin_dir: Path,
-                                                                                         shared_view) -> None:
-    frame, _ = shared_view
-    site = Site.load(twin_dir)
+def test_tied_rooms_beyond_the_budget_are_reported_unverified_and_the_answer_is_not_ok(twin_rooms_dir: Path,
+                                                                                         twin_shared_view) -> None:
+    frame, _ = twin_shared_view
+    site = Site.load(twin_rooms_dir)
     both = Localizer.from_site(site).localize(frame)
     assert both.status == Status.AMBIGUOUS
     assert {h.region for h in both.hypotheses if h.source == "graph"} == {"a", "b"}
@@ -107,9 +93,9 @@ def test_tied_rooms_beyond_the_budget_are_reported_unverified_and_the_answer_is_
     assert any("not verified" in n for n in one.diagnostics.notes)
 
 
-def test_region_structures_are_bounded_by_the_cache(twin_dir: Path, shared_view) -> None:
-    frame, _ = shared_view
-    loc = Localizer.from_site(Site.load(twin_dir), LocalizeConfig(regions=RegionConfig(max_cached=1)))
+def test_region_structures_are_bounded_by_the_cache(twin_rooms_dir: Path, twin_shared_view) -> None:
+    frame, _ = twin_shared_view
+    loc = Localizer.from_site(Site.load(twin_rooms_dir), LocalizeConfig(regions=RegionConfig(max_cached=1)))
     loc.localize(frame)
     assert len(loc.maps.cached()) == 1 and loc.maps.built >= 2  # both rooms were verified, one is kept
     out = loc.localize(replace(frame, labels=None))
@@ -117,6 +103,6 @@ def test_region_structures_are_bounded_by_the_cache(twin_dir: Path, shared_view)
     assert len(loc.maps.cached()) == 1
 
 
-def test_site_json_describes_the_field(twin_dir: Path) -> None:
-    meta = json.loads((twin_dir / "site.json").read_text())
-    assert "field.npy" in meta["files"] and meta["field"]["shape"] == list(np.load(twin_dir / "field.npy").shape)
+def test_site_json_describes_the_field(twin_rooms_dir: Path) -> None:
+    meta = json.loads((twin_rooms_dir / "site.json").read_text())
+    assert "field.npy" in meta["files"] and meta["field"]["shape"] == list(np.load(twin_rooms_dir / "field.npy").shape)

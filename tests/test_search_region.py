@@ -18,7 +18,6 @@ import zenoh
 
 from cadreg.errors import InvalidFileError, InvalidFrame
 from cadreg.geometry import pose_errors
-from cadreg.io.frames import RecordedFrames
 from cadreg.localize.localizer import Localizer
 from cadreg.result import Status
 from cadreg.site.bundle import Site
@@ -28,7 +27,7 @@ from service.schemas import SearchRegionIn
 from service.settings import Settings
 from service.zenoh_server import zenoh_config
 from test_service_support import LiveServer, free_port, multipart
-from tracking_rooms import ROOM_B_OFFSET_M, render_turn, twin_site
+from tracking_rooms import ROOM_B_OFFSET_M
 
 pytestmark = pytest.mark.realdata
 SITE = "twin-rooms"
@@ -37,21 +36,8 @@ ROOM_B[0, 3] = ROOM_B_OFFSET_M
 
 
 @pytest.fixture(scope="module")
-def twin_dir(scene0470_site_dir: Path, tmp_path_factory) -> Path:
-    return twin_site(scene0470_site_dir, tmp_path_factory.mktemp("twin-regions"))
-
-
-@pytest.fixture(scope="module")
-def shared_view(scene0470_dir: Path, tmp_path_factory):
-    """(frame, T_map_camera in room a) of a view both rooms show."""
-    out = render_turn(scene0470_dir / "scene0470_00_vh_clean_2.ply", scene0470_dir / "scene0470_00_vh_clean_2.labels.ply",
-                      tmp_path_factory.mktemp("shared-view"), n=30)
-    return RecordedFrames.open(out).load(0)
-
-
-@pytest.fixture(scope="module")
-def localizer(twin_dir: Path) -> Localizer:
-    return Localizer.from_site(Site.load(twin_dir))
+def localizer(twin_rooms_dir: Path) -> Localizer:
+    return Localizer.from_site(Site.load(twin_rooms_dir))
 
 
 def _near(T: np.ndarray, T_true: np.ndarray) -> bool:
@@ -61,8 +47,8 @@ def _near(T: np.ndarray, T_true: np.ndarray) -> bool:
 
 # --- regions in the bundle ---------------------------------------------------------------------------------------
 
-def test_composed_rooms_are_regions_with_their_nodes_and_points(scene0470_site_dir: Path, twin_dir: Path) -> None:
-    room, twin = Site.load(scene0470_site_dir), Site.load(twin_dir)
+def test_composed_rooms_are_regions_with_their_nodes_and_points(scene0470_site_dir: Path, twin_rooms_dir: Path) -> None:
+    room, twin = Site.load(scene0470_site_dir), Site.load(twin_rooms_dir)
     a, b = twin.regions
     assert (a.id, b.id) == ("a", "b")
     assert set(a.nodes) == {f"a/{n.id}" for n in room.graph.nodes} and all(n.startswith("b/") for n in b.nodes)
@@ -78,11 +64,11 @@ def test_composed_rooms_are_regions_with_their_nodes_and_points(scene0470_site_d
     assert only.id == room.site_id and only.map_range == (0, len(room.map)) and len(only.nodes) == len(room.graph.nodes)
 
 
-def test_a_region_range_outside_the_map_is_refused_at_load(twin_dir: Path, tmp_path: Path) -> None:
+def test_a_region_range_outside_the_map_is_refused_at_load(twin_rooms_dir: Path, tmp_path: Path) -> None:
     import shutil
 
     bad = tmp_path / "bad"
-    shutil.copytree(twin_dir, bad)
+    shutil.copytree(twin_rooms_dir, bad)
     meta = json.loads((bad / "site.json").read_text())
     meta["regions"][1]["map_range"][1] += 10
     (bad / "site.json").write_text(json.dumps(meta))
@@ -90,14 +76,14 @@ def test_a_region_range_outside_the_map_is_refused_at_load(twin_dir: Path, tmp_p
         Site.load(bad)
 
 
-def test_site_info_lists_regions(twin_dir: Path, capsys) -> None:
+def test_site_info_lists_regions(twin_rooms_dir: Path, capsys) -> None:
     from cadreg.cli.main import main
 
-    assert main(["site", "info", str(twin_dir), "--json"]) == 0
+    assert main(["site", "info", str(twin_rooms_dir), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert [r["id"] for r in info["regions"]] == ["a", "b"]
     assert all(r["objects"] > 0 and r["points"] > 0 and len(r["bounds"]) == 2 for r in info["regions"])
-    assert main(["site", "info", str(twin_dir)]) == 0
+    assert main(["site", "info", str(twin_rooms_dir)]) == 0
     assert "2 region(s)" in capsys.readouterr().out
 
 
@@ -116,8 +102,8 @@ def test_search_region_forms_are_checked() -> None:
     assert ball.allows(np.array([[1.0, 2.0, 1.0], [4.0, 1.0, 1.0]]), []).tolist() == [True, False]
 
 
-def test_a_repeated_view_is_ambiguous_and_each_hypothesis_names_its_room(localizer: Localizer, shared_view) -> None:
-    frame, T_true = shared_view
+def test_a_repeated_view_is_ambiguous_and_each_hypothesis_names_its_room(localizer: Localizer, twin_shared_view) -> None:
+    frame, T_true = twin_shared_view
     r = localizer.localize(frame)
     assert r.status == Status.AMBIGUOUS
     by_room = {h.region: h for h in r.hypotheses}
@@ -127,29 +113,29 @@ def test_a_repeated_view_is_ambiguous_and_each_hypothesis_names_its_room(localiz
 
 
 @pytest.mark.parametrize("room", ["a", "b"])
-def test_the_room_given_by_id_answers_the_repeated_view_ok_there(localizer: Localizer, shared_view, room: str) -> None:
-    frame, T_true = shared_view
+def test_the_room_given_by_id_answers_the_repeated_view_ok_there(localizer: Localizer, twin_shared_view, room: str) -> None:
+    frame, T_true = twin_shared_view
     r = localizer.localize(replace(frame, search_region=SearchRegion(region_ids=(room,))))
     assert r.status == Status.OK
     assert _near(r.T_map_camera, T_true if room == "a" else ROOM_B @ T_true)
     assert {h.region for h in r.hypotheses} == {room}
 
 
-def test_a_ball_around_the_camera_answers_ok_in_its_room(localizer: Localizer, shared_view) -> None:
-    frame, T_true = shared_view
+def test_a_ball_around_the_camera_answers_ok_in_its_room(localizer: Localizer, twin_shared_view) -> None:
+    frame, T_true = twin_shared_view
     centre = (ROOM_B @ T_true)[:3, 3]
     r = localizer.localize(replace(frame, search_region=SearchRegion(center=centre, radius_m=1.0)))
     assert r.status == Status.OK and _near(r.T_map_camera, ROOM_B @ T_true)
 
 
-def test_an_unknown_region_id_is_an_invalid_frame_naming_it(localizer: Localizer, shared_view) -> None:
-    frame, _ = shared_view
+def test_an_unknown_region_id_is_an_invalid_frame_naming_it(localizer: Localizer, twin_shared_view) -> None:
+    frame, _ = twin_shared_view
     with pytest.raises(InvalidFrame, match="nowhere"):
         localizer.localize(replace(frame, search_region=SearchRegion(region_ids=("a", "nowhere"))))
 
 
-def test_the_label_free_search_stays_in_the_region(localizer: Localizer, shared_view) -> None:
-    frame, T_true = shared_view
+def test_the_label_free_search_stays_in_the_region(localizer: Localizer, twin_shared_view) -> None:
+    frame, T_true = twin_shared_view
     r = localizer.localize(replace(frame, labels=None, search_region=SearchRegion(region_ids=("b",))))
     assert r.hypotheses and all(h.region == "b" for h in r.hypotheses)
     if r.status == Status.OK:
@@ -159,9 +145,9 @@ def test_the_label_free_search_stays_in_the_region(localizer: Localizer, shared_
 # --- over the wire ---------------------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def server(twin_dir: Path):
+def server(twin_rooms_dir: Path):
     zport = free_port()
-    settings = Settings(sites_dir=twin_dir.parent, port=free_port(), workers=1, queue_depth=2, request_timeout_s=60,
+    settings = Settings(sites_dir=twin_rooms_dir.parent, port=free_port(), workers=1, queue_depth=2, request_timeout_s=60,
                         zenoh_listen=[f"tcp/127.0.0.1:{zport}"])
     live = LiveServer(settings)
     live.zenoh_endpoint = f"tcp/127.0.0.1:{zport}"
@@ -169,8 +155,8 @@ def server(twin_dir: Path):
     live.stop()
 
 
-def test_http_reports_regions_and_honours_search_region(server, shared_view) -> None:
-    frame, T_true = shared_view
+def test_http_reports_regions_and_honours_search_region(server, twin_shared_view) -> None:
+    frame, T_true = twin_shared_view
     info = httpx.get(f"{server.url}/v1/sites/{SITE}", timeout=10).json()
     assert [r["id"] for r in info["regions"]] == ["a", "b"] and all(r["objects"] > 0 for r in info["regions"])
     url = f"{server.url}/v1/sites/{SITE}/localize"
@@ -187,8 +173,8 @@ def test_http_reports_regions_and_honours_search_region(server, shared_view) -> 
         assert why in r.text
 
 
-def test_zenoh_query_honours_search_region(server, shared_view) -> None:
-    frame, T_true = shared_view
+def test_zenoh_query_honours_search_region(server, twin_shared_view) -> None:
+    frame, T_true = twin_shared_view
     config = zenoh_config(Settings(zenoh_mode="peer", zenoh_listen=[], zenoh_connect=[server.zenoh_endpoint]))
     session = zenoh.open(config)
     try:

@@ -64,3 +64,13 @@ def render_turn(mesh_ply: Path, labels_ply: Path, out: Path, n: int = 40) -> Pat
 
     render_frames(LabelledMesh.from_ply(mesh_ply, labels_ply), out, 0, poses=turning_poses(n), seed=0)
     return out
+
+
+def shared_view(scene0470_dir: Path, out: Path):
+    """(frame, T_map_camera in room "a") of the turning camera's first view: the table's corner, which both rooms
+    show (rendered from the real mesh)."""
+    from cadreg.io.frames import RecordedFrames
+
+    render_turn(scene0470_dir / "scene0470_00_vh_clean_2.ply", scene0470_dir / "scene0470_00_vh_clean_2.labels.ply",
+                out, n=30)
+    return RecordedFrames.open(out).load(0)
