@@ -72,6 +72,8 @@ class Site:
     graph : the semantic graph; classes : graph class names (what `class_index` indexes);
     label_maps : {label set: {label id: class}}.
     manifest : the parsed site.json (for a site not yet saved: what site.json will hold).
+    mapped_rows : for a memory-mapped site (`load(mapped=True)`, a building by default), where each cloud's rows lie
+    in its file, for `release`. field_grid : a building's stored distance field (field.npy), or None.
     """
 
     site_id: str
