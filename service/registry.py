@@ -112,8 +112,7 @@ def _region_infos(meta: dict[str, Any], meta_path: Path, sizes: dict[str, int],
         return ({"id": str(meta["site_id"]), "bounds": None, "objects": sizes["nodes"],
                  "points": sizes["points"] + raw_points},)
     regions = from_manifest(meta["regions"], map_points=sizes["points"], raw_points=raw_points, source=str(meta_path))
-    return tuple({"id": r.id, "bounds": r.bounds.round(4).tolist(), "objects": len(r.nodes), "points": r.points}
-                 for r in regions)
+    return tuple(r.info() for r in regions)
 
 
 def find_bundles(root: Path) -> list[Path]:

@@ -100,8 +100,7 @@ def site_summary(site) -> dict:
         "label_sets": sorted(site.label_maps),
         "built_at": site.manifest.get("built_at"),
         "cad_fit": list(site.manifest.get("enhance", {}).get("cads", [])),
-        "regions": [{"id": r.id, "bounds": r.bounds.round(4).tolist(), "objects": len(r.nodes), "points": r.points}
-                    for r in site.regions],
+        "regions": [r.info() for r in site.regions],
     }
 
 

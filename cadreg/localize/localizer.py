@@ -160,12 +160,12 @@ class Localizer:
         first use, or by `warm`: about a second and (levels + 1) bytes a cell, LabelFreeConfig.max_cells at most)."""
         if self._pyramid is None:
             lf = self.config.label_free
+            surfaces = _surface_sample(self.site, self.maps)
             # A building's occupied cells come from its stored field: its points stay where they lie.
-            occupied = (self.site.cloud("both").points if len(self.maps) == 1
-                        else self.field.surface_points(lf.voxel_m / 2))
+            occupied = surfaces.points if len(self.maps) == 1 else self.field.surface_points(lf.voxel_m / 2)
             pyr = GridPyramid(self.field, occupied, self.up, voxel_m=lf.voxel_m, levels=lf.levels, tau_m=lf.tau_m,
                               reach_m=lf.reach_m, margin_m=lf.camera_margin_m, max_cells=lf.max_cells)
-            normals = _surface_sample(self.site, self.maps).normals.astype(np.float64)
+            normals = surfaces.normals.astype(np.float64)
             self._pyramid = (pyr, map_direction_histogram(normals @ pyr.R_level_map.T))
         return self._pyramid
 

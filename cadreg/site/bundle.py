@@ -113,10 +113,6 @@ class Site:
             return [whole_site_region(self, entries[0].get("id") if entries else None)]
         return from_manifest(entries, map_points=len(self.map), raw_points=len(self.raw))
 
-    def region_of_node(self) -> dict[str, str]:
-        """{graph node id: id of the region holding it}."""
-        return {n: r.id for r in self.regions for n in r.nodes}
-
     @property
     def edge_max_m(self) -> float:
         """δ of this site's graph (its build parameters): scan graphs must use the same to be comparable."""

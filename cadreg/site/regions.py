@@ -53,6 +53,11 @@ class Region:
         lo, hi = self.bounds[0] - margin_m, self.bounds[1] + margin_m
         return np.all((xyz[..., :2] >= lo[:2]) & (xyz[..., :2] <= hi[:2]), axis=-1)
 
+    def info(self) -> dict[str, Any]:
+        """What `site info --json` and `GET /v1/sites/{id}` report of the region: {id, bounds, objects, points}."""
+        return {"id": self.id, "bounds": np.asarray(self.bounds, dtype=float).round(4).tolist(),
+                "objects": len(self.nodes), "points": self.points}
+
     def to_dict(self) -> dict[str, Any]:
         return {"id": self.id, "bounds": np.asarray(self.bounds, dtype=float).round(4).tolist(),
                 "nodes": list(self.nodes), "points": self.points,
