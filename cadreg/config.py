@@ -7,9 +7,14 @@ Each section is owned by the stage it configures; add fields with bounds and a c
 
 from __future__ import annotations
 
+import json
+import tomllib
+from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from .errors import ConfigError
 
 
 class _Section(BaseModel):
@@ -339,3 +344,38 @@ class FuseConfig(_Section):
     weight_threshold: float = Field(2.0, ge=0, description="surface points need this much integration weight")
     label_frame_stride: int = Field(5, ge=1, description="vote labels from every n-th labelled frame")
     label_depth_tolerance_m: float = Field(0.03, gt=0, description="a label vote needs the point within this of the depth")
+
+
+# --- reading a LocalizeConfig from a file (`cadreg serve` and `cadreg bench --localize-config`) ---------------
+
+
+def config_problems(exc: ValidationError) -> str:
+    """pydantic's errors as one line: `<dotted field>: <why>; ...`."""
+    return "; ".join(f"{'.'.join(str(p) for p in e['loc']) or 'settings'}: {e['msg']}" for e in exc.errors())
+
+
+def load_localize_config(path: str | Path) -> LocalizeConfig:
+    """The LocalizeConfig in a `.toml` or `.json` file (sections as tables / objects, e.g. `[match] top_k = 2`);
+    anything missing keeps the code's default. Raises ConfigError naming the file and the field."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".toml", ".json"):
+        raise ConfigError(f"bad localize config {path}: expected a .toml or .json file")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"bad localize config {path}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"bad localize config {path}: unreadable: {exc}") from None
+    try:
+        doc = tomllib.loads(text) if suffix == ".toml" else json.loads(text)
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:
+        # one line: the start-up error is a single line on stderr
+        why = " ".join(str(exc).split())
+        raise ConfigError(f"bad localize config {path}: not valid {suffix[1:].upper()}: {why}") from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"bad localize config {path}: the top level must be a table of sections")
+    try:
+        return LocalizeConfig.model_validate(doc)
+    except ValidationError as exc:
+        raise ConfigError(f"bad localize config {path}: {config_problems(exc)}") from None

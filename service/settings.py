@@ -9,17 +9,15 @@ handed as that object to every worker. A bad file raises `ConfigError("bad local
 
 from __future__ import annotations
 
-import json
 import os
 import re
-import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import Field, SecretStr, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-from cadreg.config import LocalizeConfig
+from cadreg.config import LocalizeConfig, config_problems as _problems, load_localize_config  # noqa: F401 (re-exported)
 from cadreg.errors import ConfigError
 
 from .codec import MAX_IMAGE_PIXELS
@@ -31,38 +29,6 @@ _ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream|unixpipe)/\S+$")
 def _default_cache_dir() -> Path:
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     return Path(base) / "cadreg" / "sites"
-
-
-def _problems(exc: ValidationError) -> str:
-    """pydantic's errors as one line: `<dotted field>: <why>; ...`."""
-    return "; ".join(f"{'.'.join(str(p) for p in e['loc']) or 'settings'}: {e['msg']}" for e in exc.errors())
-
-
-def load_localize_config(path: str | Path) -> LocalizeConfig:
-    """The LocalizeConfig in a `.toml` or `.json` file (sections as tables / objects, e.g. `[match] top_k = 2`);
-    anything missing keeps the code's default. Raises ConfigError naming the file and the field."""
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in (".toml", ".json"):
-        raise ConfigError(f"bad localize config {path}: expected a .toml or .json file")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"bad localize config {path}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"bad localize config {path}: unreadable: {exc}") from None
-    try:
-        doc = tomllib.loads(text) if suffix == ".toml" else json.loads(text)
-    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:
-        # one line: the start-up error is a single line on stderr
-        why = " ".join(str(exc).split())
-        raise ConfigError(f"bad localize config {path}: not valid {suffix[1:].upper()}: {why}") from None
-    if not isinstance(doc, dict):
-        raise ConfigError(f"bad localize config {path}: the top level must be a table of sections")
-    try:
-        return LocalizeConfig.model_validate(doc)
-    except ValidationError as exc:
-        raise ConfigError(f"bad localize config {path}: {_problems(exc)}") from None
 
 
 def _default_workers() -> int:

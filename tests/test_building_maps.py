@@ -14,13 +14,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cadreg.config import LocalizeConfig, RegionConfig
+from cadreg.config import LabelFreeConfig, LocalizeConfig, RegionConfig
 from cadreg.errors import BundleIntegrityError
 from cadreg.localize.localizer import Localizer
 from cadreg.localize.regions import halo_cloud, region_cloud
 from cadreg.localize.score import DistanceField, building_field
 from cadreg.result import Status
 from cadreg.site.bundle import Site
+from cadreg.site.regions import SearchRegion
 
 pytestmark = pytest.mark.realdata
 
@@ -106,3 +107,22 @@ def test_region_structures_are_bounded_by_the_cache(twin_rooms_dir: Path, twin_s
 def test_site_json_describes_the_field(twin_rooms_dir: Path) -> None:
     meta = json.loads((twin_rooms_dir / "site.json").read_text())
     assert "field.npy" in meta["files"] and meta["field"]["shape"] == list(np.load(twin_rooms_dir / "field.npy").shape)
+
+
+def test_fpfh_in_a_building_searches_one_room_never_the_whole_building(twin_rooms_dir: Path, twin_shared_view) -> None:
+    """The last resort (FPFH + RANSAC) over a whole building would cost seconds a room and a copy of the building:
+    it runs on the map of one room (the one the client names, or the graph's best), else not at all."""
+    frame, _ = twin_shared_view
+    site = Site.load(twin_rooms_dir)
+    loc = Localizer.from_site(site, LocalizeConfig(label_free=LabelFreeConfig(enabled=False)))
+    bare = replace(frame, labels=None)  # no objects: the graph has nothing, the fallback is all there is
+    nowhere = loc.localize(bare)
+    assert nowhere.T_map_camera is None and nowhere.status != Status.OK
+    assert any("fpfh-ransac skipped" in n for n in nowhere.diagnostics.notes), nowhere.diagnostics.notes
+    a = next(r for r in site.regions if r.id == "a")
+    assert loc.maps.index(a).fpfh is None
+    named = loc.localize(replace(bare, search_region=SearchRegion(region_ids=("a",))))
+    assert not any("fpfh-ransac skipped" in n for n in named.diagnostics.notes)
+    assert loc.maps.index(a).fpfh is not None and loc._fpfh is None  # one room's features, not the building's
+    assert len(loc.maps.index(a).fpfh.target.points) < len(site.cloud("raw").points)
+    assert all(h.region == "a" for h in named.hypotheses if h.T_map_camera is not None)

@@ -29,6 +29,8 @@ def register(sub) -> None:
     p.add_argument("--limit", type=int, default=None, help="first N frames only (after --range)")
     p.add_argument("--map-points", choices=("raw", "enhanced", "both"), default=None,
                    help="which map the refinement uses (default: RefineConfig.map_points)")
+    p.add_argument("--localize-config", type=Path, default=None, metavar="FILE",
+                   help="LocalizeConfig as TOML or JSON (as `cadreg serve --localize-config`); --map-points overrides it")
     p.add_argument("--seed", type=int, default=0, help="seed of the perturbations of refine-from-gt-perturbed")
     p.add_argument("--json", type=Path, default=None, help="write the report as JSON here")
     p.set_defaults(func=run)
@@ -54,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     from ..localize.localizer import Localizer
     from ..site.bundle import Site
 
-    from ..config import LocalizeConfig, RefineConfig
+    from ..config import LocalizeConfig, RefineConfig, load_localize_config
     from ..errors import ConfigError
 
     site = Site.load(args.site)
@@ -66,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(f"--range must be A:B with integers, got {args.index_range!r}") from exc
         frames.indices = [i for i in frames.indices if a <= i < b]
     methods = args.method or ["cadreg"]
-    config = LocalizeConfig()
+    config = LocalizeConfig() if args.localize_config is None else load_localize_config(args.localize_config)
     if args.map_points:
         config = config.model_copy(update={"refine": RefineConfig(**{**config.refine.model_dump(), "map_points": args.map_points})})
     localizer = Localizer.from_site(site, config).warm()  # per-site structures now, not in a frame's time

@@ -564,7 +564,10 @@ class Localizer:
         fb, floor = self.config.fallback, scan.floor
         if name == "bbs":
             return self._label_free(scan, notes, rooms)
-        T, _ = self.fpfh().register(scan.down.xyz)
+        registrar = self._fpfh_in_reach(scan, rooms, notes)
+        if registrar is None:
+            return None
+        T, _ = registrar.register(scan.down.xyz)
         if floor is not None:
             # FPFH + RANSAC knows nothing of gravity: on a bare wall it happily returns the camera upside down.
             tilt = np.degrees(np.arccos(np.clip((T[:3, :3] @ floor.up_camera) @ self.up, -1.0, 1.0)))
@@ -574,6 +577,28 @@ class Localizer:
         hyp = _single(T)
         hyp.geometric = score_poses(self.field, scan.score_xyz, hyp.R, hyp.t, tau_m=self.config.match.score_tau_m)
         return hyp
+
+    def _fpfh_in_reach(self, scan: Scan, rooms: list[Region], notes: list[str]) -> FpfhRansac | None:
+        """The FPFH + RANSAC registrar this frame may use: the whole map's in a one-room site; in a building the one
+        of a single room (its region map, features computed on first use and kept with it): the room the client's
+        search region names or centres on, else the graph's best candidate room. None, with a note, when neither
+        exists: the whole building's features would cost seconds a room and a copy of the building per worker, for
+        a pose a building could not trust anyway (any other room may repeat the view)."""
+        if len(self.maps) == 1:
+            return self.fpfh()
+        room = None
+        if scan.search is not None:
+            named = scan.search.resolve(self.maps.regions)
+            room = named[0] if len(named) == 1 else (self.maps.region_at(scan.search.center) if not named else None)
+        elif rooms:
+            room = rooms[0]
+        if room is None:
+            notes.append("fallback fpfh-ransac skipped: in a building it searches one room (name one in search_region)")
+            return None
+        index = self.maps.index(room)
+        if index.fpfh is None:
+            index.fpfh = FpfhRansac(index.refine_map.xyz, voxel_m=self.config.fallback.voxel_size_m)
+        return index.fpfh
 
     def _label_free(self, scan: Scan, notes: list[str], rooms: list[Region]) -> Hypotheses | None:
         """The label-free search (bbs.py): level the frame by its up, pick the yaws its walls allow, branch and

@@ -23,6 +23,7 @@ from ..config import LocalizeConfig
 from ..pointset import PointSet
 from ..site.bundle import Site
 from ..site.regions import Region
+from .fallback import FpfhRansac
 from .refine import RefineMap
 from .score import ViewCheck
 
@@ -34,6 +35,7 @@ class RegionIndex:
     region: Region
     refine_map: RefineMap
     view_check: ViewCheck
+    fpfh: FpfhRansac | None = None  # FPFH + RANSAC against this region's map (a building's last resort), on first use
 
 
 def region_cloud(site: Site, region: Region, which: str) -> PointSet:
