@@ -87,6 +87,22 @@ def test_a_jump_is_relocalized_not_tracked(localizer: Localizer, recorded: Recor
     assert pose_errors(follow.result.T_map_camera, T_next)[0] < 0.05 and follow.state.confirmed
 
 
+def test_a_kidnapped_robot_is_placed_on_the_jump_frame(localizer: Localizer, recorded: RecordedFrames) -> None:
+    """The prediction is 10 m away, off the map: tracked from it, the frame lies on the map nowhere, which refutes
+    it, so a confident global answer stands at once (`ok`, mode relocalized, a note saying it jumped) rather than
+    waiting for the next frame as a jump the prediction still contests does."""
+    frame, T_true = recorded.load(FIRST + 40)
+    far = make_T(t=np.array([10.0, 0.0, 0.0])) @ T_true
+    tracked = localizer.track(frame, _state_at(far), t_s=1 / 30.0)
+    r = tracked.result
+    assert r.diagnostics.mode == "relocalized"
+    assert any(n.startswith("tracking failed: fitness 0.0") for n in r.diagnostics.notes), r.diagnostics.notes
+    assert r.status == Status.OK, r.diagnostics.notes
+    assert any("the new pose stands" in n for n in r.diagnostics.notes), r.diagnostics.notes
+    assert pose_errors(r.T_map_camera, T_true)[0] < 0.05
+    assert tracked.state.confirmed and len(tracked.state.tracks) == 1
+
+
 def test_a_gap_longer_than_the_setting_is_localized_globally(localizer: Localizer, recorded: RecordedFrames) -> None:
     frame, T_true = recorded.load(FIRST + 5)
     gap = localizer.config.track.max_gap_s + 0.5

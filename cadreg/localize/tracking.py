@@ -19,8 +19,10 @@ stages:
 The object clustering and graph matching of a global localization never run on a tracked frame.
 
 Never a silent jump: a relocalized pose that disagrees with where the session's motion put the camera is answered
-`ambiguous` (the tracked prediction is its rival) until the next frame tracks from it; an ambiguous session answers
-`ok` only when one hypothesis is left.
+`ambiguous` (the tracked prediction is its rival) until the next frame tracks from it, unless the frame refuted the
+prediction (tracked from it, less than TrackConfig.min_fitness of the frame lay on the map) and the global answer is
+`ok` by the localizer's own rules, rivals included (a kidnapped robot is placed on the jump frame; mode
+`relocalized` and a note say it jumped); an ambiguous session answers `ok` only when one hypothesis is left.
 
 The core has no clock: `t_s` (seconds, any monotonic clock, the same for a session's frames) comes from the runner.
 `TrackState.to_dict` / `from_dict` give the plain form a runner stores between frames.
@@ -176,7 +178,10 @@ def track_frame(localizer: "Localizer", frame: Frame, state: TrackState | None, 
         why = (f"tracking failed: fitness {best.fitness:.2f} (min {cfg.coast_fitness:g}), correction "
                f"{best.correction_m * 100:.1f} cm / {best.correction_deg:.1f}° (max {cfg.max_correction_m * 100:g} cm / "
                f"{cfg.max_correction_deg:g}°)")
-        tracked = _global(localizer, frame, state, predictions[0], t_s, top_k, "relocalized", [why])
+        # A frame that lies on the map nowhere near any prediction refutes them: a confident global answer may
+        # then stand at once (the robot was carried off), instead of waiting for the next frame to confirm it.
+        refuted = best.fitness < cfg.min_fitness
+        tracked = _global(localizer, frame, state, predictions[0], t_s, top_k, "relocalized", [why], refuted=refuted)
         # the failed attempt's cost belongs to this frame's answer too
         for k in ("points", "track"):
             tracked.result.diagnostics.stage_ms[f"{k}_tried"] = diag.stage_ms[k]
@@ -289,9 +294,11 @@ def _deferred(localizer: "Localizer", frame: Frame, state: TrackState, t_s: floa
 
 
 def _global(localizer: "Localizer", frame: Frame, state: TrackState | None, predicted: np.ndarray | None, t_s: float,
-            top_k: int | None, mode: str, notes: list[str]) -> Tracked:
+            top_k: int | None, mode: str, notes: list[str], *, refuted: bool = False) -> Tracked:
     """The whole localizer, with the session's prediction as a prior (the client's own prior wins); then the state
-    its answer leaves. A relocalized pose far from the prediction is a jump: answered `ambiguous` until confirmed."""
+    its answer leaves. A relocalized pose far from the prediction is a jump: answered `ambiguous` until confirmed,
+    unless the frame `refuted` the prediction (tracked from it, too little of the frame lay on the map: fitness
+    below TrackConfig.min_fitness) and the global answer is `ok` on its own: then the prediction is no rival."""
     cfg = localizer.config.track
     if state is not None and state.searched_s is not None and 0 <= t_s - state.searched_s < cfg.search_interval_s:
         return _deferred(localizer, frame, state, t_s, mode, notes)
@@ -322,6 +329,9 @@ def _global(localizer: "Localizer", frame: Frame, state: TrackState | None, pred
     if predicted is not None and localizer._distinct(T, predicted):
         jump = float(np.linalg.norm(T[:3, 3] - predicted[:3, 3]))
         diag.notes.append(f"relocalized {jump:.2f} m from where the session's motion put the camera")
+        if result.status == Status.OK and refuted:
+            diag.notes.append("the frame does not fit the map where the motion put it: the new pose stands")
+            return Tracked(result, TrackState(tuple(tracks), t_s, confirmed=True))
         if result.status == Status.OK:
             # not silently: the pose waits for the next frame to track from it
             result.status = Status.AMBIGUOUS
