@@ -118,3 +118,19 @@ def test_objects_in_view_counts_visible_nodes(scene0470_site_dir, frames_dir) ->
     far = T.copy()
     far[:3, 3] += 100.0
     assert objects_in_view(site, f, far) == 0
+
+
+def test_bench_reads_a_localize_config(scene0470_site_dir, frames_dir, tmp_path, capsys) -> None:
+    """`--localize-config` is the file `cadreg serve` reads: here no answer may be `ok` (confidence 1 required)."""
+    strict = tmp_path / "strict.toml"
+    strict.write_text("[match]\nmin_ok_confidence = 1.0\n")
+    out = tmp_path / "bench.json"
+    assert main(["bench", "--site", str(scene0470_site_dir), "--frames", str(frames_dir), "--method", "cadreg",
+                 "--localize-config", str(strict), "--json", str(out)]) == 0
+    counts = json.loads(out.read_text())["methods"]["cadreg"]["status_counts"]
+    assert "ok" not in counts and sum(counts.values()) == 2
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[match]\ntop_k = 0\n")
+    assert main(["bench", "--site", str(scene0470_site_dir), "--frames", str(frames_dir),
+                 "--localize-config", str(bad)]) == 2
+    assert "match.top_k" in capsys.readouterr().err
