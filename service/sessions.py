@@ -73,15 +73,20 @@ class SessionStore:
             return len(self._entries)
 
     def job(self, key: SessionKey, site_version: str, stamp_s: float | None = None) -> SessionJob:
-        """The state to send with this session's next frame (None when new, expired, of another bundle version, or
-        timed by the other clock) and the frame's time (`stamp_s`, the client's capture time, or now)."""
+        """The state to send with this session's next frame (None when new, expired, of another bundle version,
+        timed by the other clock, or newer than this frame's stamp) and the frame's time (`stamp_s`, the client's
+        capture time, or now)."""
         now = self._clock()
         stamped = stamp_s is not None
         with self._lock:
             self._expire(now)
             entry = self._entries.get(key)
-            if entry is not None and (entry.site_version != site_version or entry.stamped != stamped):
-                # a pose in a map that was replaced means nothing in the new one; times on two clocks, no motion
+            if entry is not None and (entry.site_version != site_version or entry.stamped != stamped
+                                      or (stamped and stamp_s < float(entry.state.get("t_s", 0.0)))):
+                # a pose in a map that was replaced means nothing in the new one; times on two clocks, no motion;
+                # and a stamp before the state's own time is a device whose clock restarted (a robot rebooted, a
+                # replay started over): a device's frames are sent in order, so its state would otherwise refuse
+                # every new state as older than itself until the TTL forgot it, and each frame would be a search
                 del self._entries[key]
                 entry = None
             if entry is not None:

@@ -110,3 +110,16 @@ def test_localize_config_takes_a_track_section(tmp_path) -> None:
     path.write_text("[track]\nmin_fitness = 2\n")
     with pytest.raises(ConfigError, match="track.min_fitness"):
         settings_from(localize_config=str(path))
+
+
+def test_a_device_whose_stamps_start_over_gets_a_fresh_session() -> None:
+    """A robot that reboots (or a replay that starts again) stamps its frames from 0 again: the state it left, newer
+    than every new stamp, would refuse every new state as older than itself until the TTL; it is dropped instead."""
+    store = SessionStore(ttl_s=1000, max_sessions=4, clock=Clock())
+    key = ("device", "site", "robot")
+    store.store(key, _state(50.0), "v1", stamped=True)
+    assert store.job(key, "v1", stamp_s=50.1).state == _state(50.0)  # in order: tracked from the state
+    job = store.job(key, "v1", stamp_s=0.5)  # the clock went back
+    assert job.state is None and job.t_s == 0.5
+    store.store(key, _state(0.5), "v1", stamped=True)
+    assert store.job(key, "v1", stamp_s=0.6).state == _state(0.5)
