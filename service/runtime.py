@@ -22,7 +22,7 @@ from .metrics import Metrics
 from .pool import JobResult, WorkerPool
 from .registry import SiteEntry, SiteRegistry, check_site_id, inspect_bundle
 from .schemas import FrameMeta
-from .sessions import SessionKey, SessionStore, session_key
+from .sessions import SessionJob, SessionKey, SessionStore, session_key
 from .settings import Settings
 
 log = logging.getLogger("cadreg.service")
@@ -131,14 +131,18 @@ class Service:
         session = self.sessions.job(key, entry.version, meta.stamp_s)
         future = self.pool.submit(site_id, entry.version, parts, meta, timeout_s, reserve=reserve, session=session)
         # registered before any front end's callback: the state is stored before the device's next frame is taken
-        future.add_done_callback(lambda f: self._store_session(key, session.stamped, f))
+        future.add_done_callback(lambda f: self._store_session(key, session, f))
         return future
 
-    def _store_session(self, key: SessionKey, stamped: bool, future: concurrent.futures.Future) -> None:
-        if future.cancelled() or future.exception() is not None:
-            return  # an error teaches nothing about the pose: the session keeps its state
-        job = future.result()
-        self.sessions.store(key, job.session_state, job.site_version, stamped=stamped)
+    def _store_session(self, key: SessionKey, session: SessionJob, future: concurrent.futures.Future) -> None:
+        try:
+            if future.cancelled() or future.exception() is not None:
+                return  # an error teaches nothing about the pose: the session keeps its state
+            job = future.result()
+            if job.session_state is not None:  # None: the frame taught nothing (not searched), the session stays
+                self.sessions.store(key, job.session_state, job.site_version, stamped=session.stamped)
+        finally:
+            self.sessions.release(key, session.lease)
 
     def finish(self, job: JobResult, site_id: str, request_id: str) -> dict[str, Any]:
         """The answer body: the result plus request id, site id and the bundle version that answered."""

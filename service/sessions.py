@@ -44,6 +44,14 @@ class SessionJob:
     state: dict[str, Any] | None
     t_s: float
     stamped: bool = False
+    # The session's search lease: only the job holding it may run a global search (`Localizer.track(may_search=)`);
+    # a frame sent while another frame of its session holds it and fails to track is answered at once. None: no
+    # lease (`SessionStore.release` is called with it, whatever the job's outcome).
+    lease: int | None = None
+
+    @property
+    def may_search(self) -> bool:
+        return self.lease is not None
 
 
 @dataclass
@@ -67,6 +75,12 @@ class SessionStore:
         self._entries: OrderedDict[SessionKey, _Entry] = OrderedDict()
         self.evicted = 0  # forgotten at the cap (a gauge of pressure, read by tests and metrics)
         self.expired = 0
+        # Search leases in flight: key -> (token, expiry). One per session, so a stream's frames in flight never
+        # run two global searches at once (each costs 10-50 tracked frames, and the frames behind them would be
+        # dropped). Released when the job is done; the expiry (lease_s) frees a lease whose release was lost.
+        self._leases: dict[SessionKey, tuple[int, float]] = {}
+        self._next_lease = 0
+        self.lease_s = max(self.ttl_s, 1.0)
 
     def __len__(self) -> int:
         with self._lock:
@@ -92,7 +106,31 @@ class SessionStore:
             if entry is not None:
                 entry.used_s = now
                 self._entries.move_to_end(key)
-            return SessionJob(None if entry is None else entry.state, stamp_s if stamped else now, stamped)
+            return SessionJob(None if entry is None else entry.state, stamp_s if stamped else now, stamped,
+                              self._grant_lease(key, now))
+
+    def _grant_lease(self, key: SessionKey, now: float) -> int | None:
+        """A new search lease for `key`, or None while another job of the session holds one (lock held)."""
+        held = self._leases.get(key)
+        if held is not None and held[1] > now:
+            return None
+        self._next_lease += 1
+        self._leases[key] = (self._next_lease, now + self.lease_s)
+        return self._next_lease
+
+    def release(self, key: SessionKey, lease: int | None) -> None:
+        """The job holding `lease` is done (answered, failed or cancelled): the session's next job may search."""
+        if lease is None:
+            return
+        with self._lock:
+            held = self._leases.get(key)
+            if held is not None and held[0] == lease:
+                del self._leases[key]
+
+    def leases(self) -> int:
+        """Search leases held now (one per session with a job that may search in flight)."""
+        with self._lock:
+            return len(self._leases)
 
     def store(self, key: SessionKey, state: dict[str, Any] | None, site_version: str, *, stamped: bool = False) -> None:
         """Keep the state the worker returned (None: nothing worth keeping, the session is forgotten). A state

@@ -135,7 +135,7 @@ def _localize(sites: _Sites, msg: tuple, test_hooks: bool) -> tuple:
         # a state stored for another version was dropped by the parent; one from an older version of this worker's
         # site (answered with the newest here) is still a pose in nearly the same map, and tracking checks it
         state = None if session.state is None else TrackState.from_dict(session.state)
-        tracked = localizer.track(frame, state, t_s=session.t_s, top_k=_top_k(meta))
+        tracked = localizer.track(frame, state, t_s=session.t_s, top_k=_top_k(meta), may_search=session.may_search)
         return ("result", job_id, True, tracked.result.to_dict(), used,
                 None if tracked.state is None else tracked.state.to_dict())
     except Exception as exc:  # every failure goes back as an error body; the worker lives on

@@ -123,3 +123,24 @@ def test_a_device_whose_stamps_start_over_gets_a_fresh_session() -> None:
     assert job.state is None and job.t_s == 0.5
     store.store(key, _state(0.5), "v1", stamped=True)
     assert store.job(key, "v1", stamp_s=0.6).state == _state(0.5)
+
+
+def test_one_search_lease_per_session_until_its_job_is_done() -> None:
+    """Only the job holding a session's lease may search: a second job of the session in flight gets none, the
+    lease comes back when the holder is done (whatever its outcome), and a lease whose release was lost expires."""
+    clock = Clock()
+    store = SessionStore(ttl_s=30, max_sessions=4, clock=clock)
+    key, other = ("device", "site", "robot"), ("device", "site", "other")
+    first = store.job(key, "v1")
+    second = store.job(key, "v1")
+    assert first.may_search and not second.may_search
+    assert store.job(other, "v1").may_search  # per session
+    store.release(key, second.lease)  # no lease: nothing happens
+    assert not store.job(key, "v1").may_search
+    store.release(key, first.lease)
+    third = store.job(key, "v1")
+    assert third.may_search and third.lease != first.lease
+    store.release(key, first.lease)  # a stale release does not free the new holder's lease
+    assert not store.job(key, "v1").may_search
+    clock.now += store.lease_s + 1  # the holder's release never came
+    assert store.job(key, "v1").may_search

@@ -189,3 +189,18 @@ def test_after_a_fruitless_search_the_next_waits(localizer: Localizer, recorded:
     assert pose_errors(again.result.T_map_camera, T_true)[0] < 0.05
     assert again.state.searched_s is None and len(again.state.tracks) == 1
     assert TrackState.from_dict(lost.to_dict()) == lost
+
+
+def test_without_the_search_lease_a_frame_that_does_not_track_is_not_searched(localizer: Localizer,
+                                                                             recorded: RecordedFrames) -> None:
+    frame, T_true = recorded.load(FIRST + 40)
+    new = localizer.track(frame, None, t_s=0.0, may_search=False)
+    assert new.result.status == Status.NO_MATCH and new.state is None
+    assert any("another frame of this session is being searched" in n for n in new.result.diagnostics.notes)
+    far = _state_at(make_T(t=np.array([10.0, 0.0, 0.0])) @ T_true)
+    lost = localizer.track(frame, far, t_s=1 / 30.0, may_search=False)
+    assert lost.result.status == Status.NO_MATCH and lost.state is far  # kept as it was
+    stages = lost.result.diagnostics.stage_ms
+    assert "track_tried" in stages and not {"match", "verify", "fallback"} & set(stages)  # tried, not searched
+    near = localizer.track(frame, _state_at(T_true), t_s=1 / 30.0, may_search=False)
+    assert near.result.diagnostics.mode == "tracked" and near.result.status == Status.OK  # tracking needs no lease

@@ -119,3 +119,29 @@ def test_sessions_stay_within_max_sessions(server, recorded: RecordedFrames) -> 
         for k in range(cap + 3):
             client.localize(SITE_ID, enc, session_id=f"many-{k}")
     assert len(server.service.sessions) == cap
+
+
+def test_a_session_runs_one_global_search_at_a_time(server, recorded: RecordedFrames) -> None:
+    """Two frames of a new session in flight together: the first holds the session's search lease and is localized
+    globally; the second, which cannot track (no state yet), is answered no_match at once instead of a second
+    search; the first's state survives it and the next frame tracks from it."""
+    import concurrent.futures
+    import time
+
+    def send(k: int) -> dict:
+        with Client(server.url, read_timeout_s=120.0) as client:
+            enc = client.encode((recorded, FIRST + 40 + k))
+            enc = replace(enc, meta=enc.meta.model_copy(update={"stamp_s": k / 30.0}))
+            return client.localize(SITE_ID, enc, session_id="one-search")
+
+    with concurrent.futures.ThreadPoolExecutor(2) as pool:
+        first = pool.submit(send, 0)
+        time.sleep(0.05)  # the first is in the pool (a global search takes ~100 ms or more)
+        second = pool.submit(send, 1)
+        a, b = first.result(), second.result()
+    assert a["diagnostics"]["mode"] == "global" and a["status"] == "ok", a["diagnostics"]["notes"]
+    assert b["status"] == "no_match" and b["T_map_camera"] is None
+    assert any("another frame of this session is being searched" in n for n in b["diagnostics"]["notes"])
+    c = send(2)
+    assert c["diagnostics"]["mode"] == "tracked" and c["status"] == "ok", c["diagnostics"]["notes"]
+    assert server.service.sessions.leases() == 0

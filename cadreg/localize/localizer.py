@@ -197,12 +197,15 @@ class Localizer:
             choice = self._refine(scan, candidates, method, diag)
         return self._result(scan, candidates, choice, top_k, diag, frame.frame_id)
 
-    def track(self, frame: Frame, state: TrackState | None, *, t_s: float, top_k: int | None = None) -> Tracked:
+    def track(self, frame: Frame, state: TrackState | None, *, t_s: float, top_k: int | None = None,
+              may_search: bool = True) -> Tracked:
         """One frame of a session: refined from the motion prediction of `state` when it is live (no clustering,
         no graph match), else localized globally with the prediction as a prior (`tracking.py`). Returns the result
         (`diagnostics.mode` = tracked | relocalized | global) and the session's next state. t_s : this frame's
-        time, seconds, on the clock of `state.t_s`."""
-        return track_frame(self, frame, state, t_s=t_s, top_k=top_k)
+        time, seconds, on the clock of `state.t_s`. may_search : False while another frame of the session is
+        being searched (a runner with several frames of a session in flight): a frame that does not track is
+        then answered `no_match` at once instead of starting a second search."""
+        return track_frame(self, frame, state, t_s=t_s, top_k=top_k, may_search=may_search)
 
     # --- stages -------------------------------------------------------------------------------------------------
     def _check_request(self, frame: Frame, method: str | None, top_k: int | None) -> tuple[str, int]:

@@ -144,25 +144,28 @@ def velocity_between(T_prev: np.ndarray, T_next: np.ndarray, dt_s: float) -> np.
 
 
 def track_frame(localizer: "Localizer", frame: Frame, state: TrackState | None, *, t_s: float,
-                top_k: int | None = None) -> Tracked:
+                top_k: int | None = None, may_search: bool = True) -> Tracked:
     """One session frame: tracked from `state` when it is live, else localized globally (see the module docstring).
 
     state : the session's state after its previous frame, None for a new session. t_s : this frame's time, seconds,
-    on the clock of `state.t_s`. Raises InvalidFrame for a frame that cannot be registered.
+    on the clock of `state.t_s`. may_search : False when another frame of the session is being searched (the
+    runner's lease): a frame that does not track is answered `no_match` at once, its state kept. Raises
+    InvalidFrame for a frame that cannot be registered.
     """
+    search = _global if may_search else _search_elsewhere
     cfg = localizer.config.track
     if not isinstance(frame, Frame):
         raise InvalidFrame(f"expected a Frame, got {type(frame).__name__}")
     if not np.isfinite(t_s):
         raise InvalidArgument(f"t_s must be a finite time in seconds, got {t_s}")
     if state is None or not state.tracks:
-        return _global(localizer, frame, state, None, t_s, top_k, "global", [])
+        return search(localizer, frame, state, None, t_s, top_k, "global", [])
     dt_s = t_s - state.t_s
     predictions = [tr.predict(dt_s) for tr in state.tracks]
     if not cfg.enabled:
-        return _global(localizer, frame, state, predictions[0], t_s, top_k, "relocalized", ["tracking is off"])
+        return search(localizer, frame, state, predictions[0], t_s, top_k, "relocalized", ["tracking is off"])
     if dt_s > cfg.max_gap_s:
-        return _global(localizer, frame, state, predictions[0], t_s, top_k, "relocalized",
+        return search(localizer, frame, state, predictions[0], t_s, top_k, "relocalized",
                        [f"{dt_s:.2f} s since the last accepted frame (more than {cfg.max_gap_s:g} s): not tracked"])
     frame.validate()
     diag = Diagnostics(site_id=localizer.site.site_id, bundle_version=localizer.site.version, mode="tracked")
@@ -181,7 +184,7 @@ def track_frame(localizer: "Localizer", frame: Frame, state: TrackState | None, 
         # A frame that lies on the map nowhere near any prediction refutes them: a confident global answer may
         # then stand at once (the robot was carried off), instead of waiting for the next frame to confirm it.
         refuted = best.fitness < cfg.min_fitness
-        tracked = _global(localizer, frame, state, predictions[0], t_s, top_k, "relocalized", [why], refuted=refuted)
+        tracked = search(localizer, frame, state, predictions[0], t_s, top_k, "relocalized", [why], refuted=refuted)
         # the failed attempt's cost belongs to this frame's answer too
         for k in ("points", "track"):
             tracked.result.diagnostics.stage_ms[f"{k}_tried"] = diag.stage_ms[k]
@@ -290,6 +293,14 @@ def _deferred(localizer: "Localizer", frame: Frame, state: TrackState, t_s: floa
     wait_s = localizer.config.track.search_interval_s - (t_s - (state.searched_s or t_s))
     diag = Diagnostics(site_id=localizer.site.site_id, bundle_version=localizer.site.version, mode=mode,
                        notes=[*notes, f"no global search for another {wait_s:.2f} s: the last one found no pose"])
+    return Tracked(LocalizationResult(Status.NO_MATCH, diagnostics=diag, frame_id=frame.frame_id), state)
+
+
+def _search_elsewhere(localizer: "Localizer", frame: Frame, state: TrackState | None, predicted: np.ndarray | None,
+                      t_s: float, top_k: int | None, mode: str, notes: list[str], *, refuted: bool = False) -> Tracked:
+    """No pose, at once, the state kept: another frame of this session holds the search (`track_frame`)."""
+    diag = Diagnostics(site_id=localizer.site.site_id, bundle_version=localizer.site.version, mode=mode,
+                       notes=[*notes, "not searched: another frame of this session is being searched"])
     return Tracked(LocalizationResult(Status.NO_MATCH, diagnostics=diag, frame_id=frame.frame_id), state)
 
 
