@@ -62,6 +62,13 @@ class _Entry:
     stamped: bool
 
 
+def _age(state: dict[str, Any]) -> tuple[float, float]:
+    """How recent a state is: the time of its last accepted frame, then of its last search that found nothing (a
+    failed search keeps the accepted time, and a frame answered beside it must not undo what it learnt)."""
+    searched = state.get("searched_s")
+    return float(state.get("t_s", 0.0)), float("-inf") if searched is None else float(searched)
+
+
 class SessionStore:
     """Session states by key, least recently used first; expired on access and on every store."""
 
@@ -134,7 +141,7 @@ class SessionStore:
 
     def store(self, key: SessionKey, state: dict[str, Any] | None, site_version: str, *, stamped: bool = False) -> None:
         """Keep the state the worker returned (None: nothing worth keeping, the session is forgotten). A state
-        older than the one stored (frames of one session answered out of order) is not kept."""
+        older than the one stored (frames of one session answered out of order; `_age`) is not kept."""
         now = self._clock()
         with self._lock:
             self._expire(now)
@@ -142,7 +149,7 @@ class SessionStore:
                 self._entries.pop(key, None)
                 return
             held = self._entries.get(key)
-            if held is not None and held.stamped == stamped and float(held.state.get("t_s", 0.0)) > float(state.get("t_s", 0.0)):
+            if held is not None and held.stamped == stamped and _age(held.state) > _age(state):
                 return
             self._entries[key] = _Entry(state, site_version, now, stamped)
             self._entries.move_to_end(key)

@@ -144,3 +144,17 @@ def test_one_search_lease_per_session_until_its_job_is_done() -> None:
     assert not store.job(key, "v1").may_search
     clock.now += store.lease_s + 1  # the holder's release never came
     assert store.job(key, "v1").may_search
+
+
+def test_a_failed_search_is_not_undone_by_a_frame_answered_beside_it() -> None:
+    """A search that found nothing keeps the last accepted time and adds its own (`searched_s`): a frame of the
+    same session that was answered beside it, from the state before, must not overwrite that, or the next frame
+    would search again at once."""
+    store = SessionStore(ttl_s=1000, max_sessions=4, clock=Clock())
+    key = ("device", "site", "robot")
+    before = {"t_s": 10.0, "confirmed": True, "tracks": [], "searched_s": None}
+    searched = {**before, "confirmed": False, "searched_s": 10.2}
+    store.store(key, before, "v1", stamped=True)
+    store.store(key, searched, "v1", stamped=True)
+    store.store(key, before, "v1", stamped=True)  # the frame answered beside the search, finishing later
+    assert store.job(key, "v1", stamp_s=10.3).state == searched
