@@ -13,7 +13,7 @@ from cadreg.camera import CameraIntrinsics
 from cadreg.config import FallbackConfig, LocalizeConfig, RefineConfig
 from cadreg.errors import InvalidFrame
 from cadreg.frame import Frame
-from cadreg.geometry import pose_errors
+from cadreg.geometry import make_T, pose_errors
 from cadreg.localize import Localizer
 from cadreg.localize.picture import render_localization_png
 from cadreg.localize.synthetic import look_pose, make_scene, render_frame
@@ -207,3 +207,17 @@ def test_a_bare_wall_is_never_answered_ok(scene0470_site_dir, tilt_deg: float) -
     frame = Frame(depth=depth, color=color, depth_intrinsics=cam, color_intrinsics=cam)
     result = Localizer.from_site(Site.load(scene0470_site_dir)).localize(frame)
     assert result.status != Status.OK, (result.status, result.confidence)
+
+
+def test_the_margin_is_to_the_best_distinct_refined_rival(localizer) -> None:
+    """Refined contenders best first: a runner-up that converged onto the winner is no rival and must not hide a
+    distinct one behind it (twin rooms at 0.962 and 0.947 with a copy of the first between them were answered
+    `ok` with the whole score as margin)."""
+    here = np.eye(4)
+    same = make_T(t=np.array([0.01, 0.0, 0.0]))  # within the distinct-pose tolerance of `here`
+    there = make_T(t=np.array([4.0, 0.0, 0.0]))
+    has_rival, margin = localizer._refined_margin([0.962, 0.961, 0.947], [here, same, there])
+    assert has_rival and margin == pytest.approx(0.015)
+    assert localizer._refined_margin([0.9, 0.8], [here, same]) == (False, 0.9)
+    has_rival, margin = localizer._refined_margin([0.9, 0.85], [here, there])
+    assert has_rival and margin == pytest.approx(0.05)
