@@ -84,7 +84,8 @@ class SessionStore:
         self.expired = 0
         # Search leases in flight: key -> (token, expiry). One per session, so a stream's frames in flight never
         # run two global searches at once (each costs 10-50 tracked frames, and the frames behind them would be
-        # dropped). Released when the job is done; the expiry (lease_s) frees a lease whose release was lost.
+        # dropped). Released when the job is done; the expiry (lease_s) frees a lease whose release was lost, and
+        # at most max_sessions are held (`_grant_lease`).
         self._leases: dict[SessionKey, tuple[int, float]] = {}
         self._next_lease = 0
         self.lease_s = max(self.ttl_s, 1.0)
@@ -118,9 +119,15 @@ class SessionStore:
 
     def _grant_lease(self, key: SessionKey, now: float) -> int | None:
         """A new search lease for `key`, or None while another job of the session holds one (lock held)."""
-        held = self._leases.get(key)
+        held = self._leases.pop(key, None)
         if held is not None and held[1] > now:
+            self._leases[key] = held
             return None
+        # Releases keep this to the jobs in flight; whatever arrives, at most max_sessions leases are held, the
+        # oldest granted dropped first (kept in grant order: O(1)). A dropped lease only lets its session's next
+        # frame search while an earlier one may still be searching.
+        while len(self._leases) >= self.max_sessions:
+            del self._leases[next(iter(self._leases))]
         self._next_lease += 1
         self._leases[key] = (self._next_lease, now + self.lease_s)
         return self._next_lease

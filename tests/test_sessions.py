@@ -158,3 +158,13 @@ def test_a_failed_search_is_not_undone_by_a_frame_answered_beside_it() -> None:
     store.store(key, searched, "v1", stamped=True)
     store.store(key, before, "v1", stamped=True)  # the frame answered beside the search, finishing later
     assert store.job(key, "v1", stamp_s=10.3).state == searched
+
+
+def test_leases_never_released_stay_within_the_cap() -> None:
+    clock = Clock()
+    store = SessionStore(ttl_s=10, max_sessions=3, clock=clock)
+    for name in "abcdef":
+        assert store.job(("device", "s", name), "v1").may_search  # granted, never released (lost releases)
+    assert store.leases() == 3  # the oldest granted went first
+    assert not store.job(("device", "s", "f"), "v1").may_search  # a held lease stands
+    assert store.job(("device", "s", "a"), "v1").may_search  # a dropped one is granted again
