@@ -507,9 +507,7 @@ class Localizer:
         diag.refinement = Refinement(method=out.method, iterations=out.iterations, fitness=choice.fitness,
                                      inlier_rmse_m=choice.rmse_m, converged=out.converged)
         center = transform_points(T, choice.center_camera[None])[0]
-        # The count alone (return_length): building the list of a 3 m ball's indices costs more than the search.
-        maps = self.maps_at(T, choice.center_camera)
-        in_roi = int(maps.refine_map.fit_tree.query_ball_point(center, rc.roi_radius_m, return_length=True))
+        in_roi = self.maps_at(T, choice.center_camera).refine_map.roi_count(center, rc.roi_radius_m)
         diag.roi = Roi(center.tolist(), rc.roi_radius_m, in_roi, choice.roi_frame_points)
         if winner.hypothesis.source == "graph":
             diag.matches = [Match(i, self.graph.ids[a], self.site.classes[scan.clusters[i].cls])

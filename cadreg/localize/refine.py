@@ -110,8 +110,9 @@ class RefineMap:
 
     # -- queries ----------------------------------------------------------------------------------------------
     def roi_count(self, center: np.ndarray, radius_m: float) -> int:
-        """Map points (at the fitness resolution) within `radius_m` of `center`."""
-        return len(self.fit_tree.query_ball_point(center, radius_m))
+        """Map points (at the fitness resolution) within `radius_m` of `center`. The count alone (return_length):
+        the list of a 3 m ball's indices costs twenty times the count (1.6 ms of a tracked frame's 20)."""
+        return int(self.fit_tree.query_ball_point(center, radius_m, return_length=True))
 
     def fitness(self, xyz_map: np.ndarray, *, inlier_m: float = 0.05) -> tuple[float, float]:
         """(fraction of points within inlier_m of the map, RMSE of those, metres); xyz_map (n, 3) map frame."""
