@@ -249,6 +249,12 @@ class TrackConfig(_Section):
                                     "by at most this (at 30 fps corrections are 0.2–2 cm): a larger pull is a slide "
                                     "onto other surfaces, or a kidnap")
     max_correction_deg: float = Field(3.0, gt=0, le=180, description="the same bound on rotation (0.1–1.5° seen)")
+    max_speed_m_s: float = Field(1.0, gt=0, description="how fast the camera may move: a frame that comes dt after "
+                                 "its state may be corrected by up to this × dt (at least max_correction_m, at most "
+                                 "coarse_correspondence_m), e.g. the first frame after a relocalization, whose motion "
+                                 "is not known yet, or one after dropped frames")
+    max_turn_deg_s: float = Field(60.0, gt=0, description="the same bound on turning, degrees a second (at least "
+                                  "max_correction_deg)")
     max_gap_s: float = Field(1.0, gt=0, description="a session frame this long after its last accepted one is "
                              "localized globally (with the prediction as a prior): constant velocity is stale by then")
     search_interval_s: float = Field(1.0, ge=0, description="after a global search that found no pose, the session's "

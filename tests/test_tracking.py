@@ -204,3 +204,24 @@ def test_without_the_search_lease_a_frame_that_does_not_track_is_not_searched(lo
     assert "track_tried" in stages and not {"match", "verify", "fallback"} & set(stages)  # tried, not searched
     near = localizer.track(frame, _state_at(T_true), t_s=1 / 30.0, may_search=False)
     assert near.result.diagnostics.mode == "tracked" and near.result.status == Status.OK  # tracking needs no lease
+
+
+def test_a_state_is_trusted_as_far_as_the_camera_can_move_since_it(localizer: Localizer,
+                                                                    recorded: RecordedFrames) -> None:
+    """Right after a relocalization the motion is unknown (zero velocity) and the next frame comes a search's time
+    later: the camera moved 7 cm in those 0.3 s, more than the 5 cm a frame at 30 fps may be corrected by. That
+    frame is tracked (the bound grows with the time since the state, up to the coarse GICP's reach), where before it
+    went back to a global search, and so did every frame after it."""
+    from cadreg.localize.tracking import correction_limits
+
+    cfg = localizer.config.track
+    assert correction_limits(cfg, 1 / 30) == (cfg.max_correction_m, cfg.max_correction_deg)
+    assert correction_limits(cfg, 0.15) == (pytest.approx(0.15 * cfg.max_speed_m_s), pytest.approx(0.15 * cfg.max_turn_deg_s))
+    assert correction_limits(cfg, 5.0)[0] == cfg.coarse_correspondence_m
+    _, T_then = recorded.load(FIRST + 40)
+    frame, T_now = recorded.load(FIRST + 49)
+    assert pose_errors(T_then, T_now)[0] > cfg.max_correction_m
+    tracked = localizer.track(frame, _state_at(T_then), t_s=0.3)
+    r = tracked.result
+    assert r.diagnostics.mode == "tracked" and r.status == Status.OK, r.diagnostics.notes
+    assert pose_errors(r.T_map_camera, T_now)[0] < 0.05

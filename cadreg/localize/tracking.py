@@ -38,6 +38,7 @@ import numpy as np
 import small_gicp
 from scipy.spatial.transform import Rotation
 
+from ..config import TrackConfig
 from ..errors import InvalidArgument, InvalidFrame
 from ..frame import Frame
 from ..geometry import rotation_angle_deg, transform_points
@@ -174,13 +175,14 @@ def track_frame(localizer: "Localizer", frame: Frame, state: TrackState | None, 
         points, center_camera, check_xyz = _track_points(localizer, frame)
         diag.frame_points = len(points)
     with timer("track"):
-        outcomes = [_refine(localizer, points, check_xyz, tr, T) for tr, T in zip(state.tracks, predictions)]
+        limits = correction_limits(cfg, dt_s)
+        outcomes = [_refine(localizer, points, check_xyz, tr, T, limits) for tr, T in zip(state.tracks, predictions)]
     accepted = [o for o in outcomes if o.accepted]
     if not accepted:
         best = max(outcomes, key=lambda o: o.fitness)
         why = (f"tracking failed: fitness {best.fitness:.2f} (min {cfg.coast_fitness:g}), correction "
-               f"{best.correction_m * 100:.1f} cm / {best.correction_deg:.1f}° (max {cfg.max_correction_m * 100:g} cm / "
-               f"{cfg.max_correction_deg:g}°)")
+               f"{best.correction_m * 100:.1f} cm / {best.correction_deg:.1f}° (max {limits[0] * 100:.3g} cm / "
+               f"{limits[1]:.3g}°)")
         # A frame that lies on the map nowhere near any prediction refutes them: a confident global answer may
         # then stand at once (the robot was carried off), instead of waiting for the next frame to confirm it.
         refuted = best.fitness < cfg.min_fitness
@@ -208,10 +210,21 @@ def _track_points(localizer: "Localizer", frame: Frame) -> tuple[FramePoints, np
     return points, center, points.xyz[check]
 
 
+def correction_limits(cfg: TrackConfig, dt_s: float) -> tuple[float, float]:
+    """(metres, degrees) a tracked frame dt_s after its state may correct the prediction by: the fixed bounds at a
+    stream's rate, and what the camera can move in dt_s beyond them (TrackConfig.max_speed_m_s, max_turn_deg_s),
+    within the coarse GICP's reach. A state's prediction is only as good as the time since it: right after a
+    relocalization (motion unknown) the next frame comes a search's time later, several frames at 30 fps, and
+    the fixed 5 cm sent it back to a search, again and again."""
+    dt = max(0.0, float(dt_s))
+    metres = min(cfg.coarse_correspondence_m, max(cfg.max_correction_m, cfg.max_speed_m_s * dt))
+    return metres, max(cfg.max_correction_deg, cfg.max_turn_deg_s * dt)
+
+
 def _refine(localizer: "Localizer", points: FramePoints, check_xyz: np.ndarray, prior: Track,
-            predicted: np.ndarray) -> _Outcome:
+            predicted: np.ndarray, limits: tuple[float, float]) -> _Outcome:
     """Coarse then fine GICP from the prediction against the site's small_gicp maps; accepted when the fitness
-    holds and the refinement moved the prediction little (the motion agrees)."""
+    holds and the refinement moved the prediction by no more than `limits` (metres, degrees: the motion agrees)."""
     cfg, rc = localizer.config.track, localizer.config.refine
     rm = localizer.maps_at(predicted, points.xyz.mean(axis=0)).refine_map
     coarse, _ = small_gicp.preprocess_points(points.xyz, rc.coarse_voxel_m, num_neighbors=GICP_NEIGHBORS)
@@ -229,8 +242,7 @@ def _refine(localizer: "Localizer", points: FramePoints, check_xyz: np.ndarray, 
     out = _Outcome(prior, predicted, T, fitness, rmse, float(np.linalg.norm(T[:3, 3] - predicted[:3, 3])),
                    rotation_angle_deg(delta[:3, :3]), int(res.iterations), bool(res.converged),
                    covariance_from_hessian(np.asarray(res.H), 2.0 * float(res.error), int(res.num_inliers)))
-    out.accepted = (fitness >= cfg.coast_fitness and out.correction_m <= cfg.max_correction_m
-                    and out.correction_deg <= cfg.max_correction_deg)
+    out.accepted = fitness >= cfg.coast_fitness and out.correction_m <= limits[0] and out.correction_deg <= limits[1]
     out.on_map = out.accepted and fitness >= cfg.min_fitness
     return out
 
