@@ -8,13 +8,15 @@ stages:
     predict     each hypothesis's pose moved by its velocity over the time since the last accepted frame
     points      the frame's points at the tracking stride, inside the region of interest (radius γ)
     track       coarse then fine GICP from each prediction (the site's small_gicp maps, built once in
-                `Localizer.from_site`); accepted when the correction stays small (the motion agrees) and the
-                fitness holds; hypotheses that fall behind the best are pruned
+                `Localizer.from_site`); accepted when the correction stays within what the camera can move in
+                the time since the state (`correction_limits`: the motion agrees) and the fitness holds;
+                hypotheses that fall behind the best are pruned
     result      `tracked`: ok once a single hypothesis remains, ambiguous while several do; low_overlap (no pose,
                 the session follows on) while the camera looks past the map's edge (TrackConfig.coast_fitness)
     global      nothing accepted, no live state or a gap longer than TrackConfig.max_gap_s: the whole localizer,
                 with the best prediction as a prior (`relocalized`), or from nothing (`global`); after a search
-                that found nothing, the next waits TrackConfig.search_interval_s (no_match at once meanwhile)
+                that found nothing, the next waits TrackConfig.search_interval_s (no_match at once meanwhile);
+                a runner with several frames of a session in flight lets one search at a time (`may_search`)
 
 The object clustering and graph matching of a global localization never run on a tracked frame.
 
