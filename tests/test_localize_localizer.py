@@ -216,8 +216,8 @@ def test_the_margin_is_to_the_best_distinct_refined_rival(localizer) -> None:
     here = np.eye(4)
     same = make_T(t=np.array([0.01, 0.0, 0.0]))  # within the distinct-pose tolerance of `here`
     there = make_T(t=np.array([4.0, 0.0, 0.0]))
-    has_rival, margin = localizer._refined_margin([0.962, 0.961, 0.947], [here, same, there])
+    has_rival, margin = localizer._rival_margin([0.962, 0.961, 0.947], [here, same, there])
     assert has_rival and margin == pytest.approx(0.015)
-    assert localizer._refined_margin([0.9, 0.8], [here, same]) == (False, 0.9)
-    has_rival, margin = localizer._refined_margin([0.9, 0.85], [here, there])
+    assert localizer._rival_margin([0.9, 0.8], [here, same]) == (False, 0.9)
+    has_rival, margin = localizer._rival_margin([0.9, 0.85], [here, there])
     assert has_rival and margin == pytest.approx(0.05)

@@ -451,11 +451,9 @@ class Localizer:
         if len(refined) > 1:
             refined.sort(key=lambda r: -r[0])
             diag.notes.append(f"refined {len(refined)} close hypotheses, scores " + ", ".join(f"{r[0]:.3f}" for r in refined))
-            has_rival, margin = self._refined_margin([r[0] for r in refined], [r[1].T_map_camera for r in refined])
+            has_rival, margin = self._rival_margin([r[0] for r in refined], [r[1].T_map_camera for r in refined])
         else:
-            rival = next((c for c in candidates[1:] if self._distinct(c.T_map_camera, best.T_map_camera)), None)
-            has_rival = rival is not None
-            margin = best.score - (rival.score if has_rival else 0.0)
+            has_rival, margin = self._rival_margin([c.score for c in candidates], [c.T_map_camera for c in candidates])
         # A distinct candidate as close to the best as the contenders, but beyond the refine_contenders refined,
         # was never ruled out (repeated rooms give many): the answer cannot claim to be the one.
         unexamined = [c for c in candidates[1:] if best.score - c.score < mc.ambiguity_margin
@@ -472,9 +470,9 @@ class Localizer:
             transform_points(out.T_map_camera, scan.check_xyz), inlier_m=rc.inlier_m)
         return Choice(winner, out, margin, has_rival, fitness, rmse, center_camera, roi_frame_points, see)
 
-    def _refined_margin(self, scores: list[float], poses: list[np.ndarray]) -> tuple[bool, float]:
-        """(has a distinct rival, margin) of refined poses sorted best first: the rival is the best pose distinct
-        from the winner, wherever it ranks. A runner-up that converged onto the winner is the winner again, not a
+    def _rival_margin(self, scores: list[float], poses: list[np.ndarray]) -> tuple[bool, float]:
+        """(has a distinct rival, margin) of poses sorted best first (refined contenders, or the candidates when
+        only the best was refined): the rival is the best pose distinct from the winner, wherever it ranks. A runner-up that converged onto the winner is the winner again, not a
         rival, and must not hide a distinct pose behind it (two twin rooms refined to 0.962 and 0.947 with a copy
         of the first between them were answered `ok` with the whole score as margin)."""
         for score, T in zip(scores[1:], poses[1:]):

@@ -305,16 +305,21 @@ def _deferred(localizer: "Localizer", frame: Frame, state: TrackState, t_s: floa
               notes: list[str]) -> Tracked:
     """No pose, at once: the last global search found nothing less than TrackConfig.search_interval_s ago."""
     wait_s = localizer.config.track.search_interval_s - (t_s - (state.searched_s or t_s))
-    diag = Diagnostics(site_id=localizer.site.site_id, bundle_version=localizer.site.version, mode=mode,
-                       notes=[*notes, f"no global search for another {wait_s:.2f} s: the last one found no pose"])
-    return Tracked(LocalizationResult(Status.NO_MATCH, diagnostics=diag, frame_id=frame.frame_id), state)
+    return _no_pose(localizer, frame, state, mode, [*notes, f"no global search for another {wait_s:.2f} s: the last "
+                                                            "one found no pose"])
 
 
 def _search_elsewhere(localizer: "Localizer", frame: Frame, state: TrackState | None, predicted: np.ndarray | None,
                       t_s: float, top_k: int | None, mode: str, notes: list[str], *, refuted: bool = False) -> Tracked:
-    """No pose, at once, the state kept: another frame of this session holds the search (`track_frame`)."""
-    diag = Diagnostics(site_id=localizer.site.site_id, bundle_version=localizer.site.version, mode=mode,
-                       notes=[*notes, "not searched: another frame of this session is being searched"])
+    """No pose, at once, the state kept: another frame of this session holds the search (`track_frame`; the
+    signature is `_global`'s, for which it stands in)."""
+    return _no_pose(localizer, frame, state, mode, [*notes, "not searched: another frame of this session is being "
+                                                            "searched"])
+
+
+def _no_pose(localizer: "Localizer", frame: Frame, state: TrackState | None, mode: str, notes: list[str]) -> Tracked:
+    """`no_match` without a search, the session's state handed back as it came."""
+    diag = Diagnostics(site_id=localizer.site.site_id, bundle_version=localizer.site.version, mode=mode, notes=notes)
     return Tracked(LocalizationResult(Status.NO_MATCH, diagnostics=diag, frame_id=frame.frame_id), state)
 
 
