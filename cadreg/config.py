@@ -235,7 +235,7 @@ class TrackConfig(_Section):
     coarse_correspondence_m: float = Field(0.2, gt=0, description="the coarse GICP from the prediction pairs points "
                                            "this far apart: how far the prediction may be off")
     coarse_iterations: int = Field(10, ge=1)
-    fine_voxel_m: float = Field(0.05, gt=0, description="frame resolution of the fine GICP of a tracked frame")
+    fine_voxel_m: float = Field(0.05, gt=0, description="frame resolution of the fine (point-to-plane) ICP of a tracked frame")
     fine_correspondence_m: float = Field(0.1, gt=0)
     fine_iterations: int = Field(12, ge=1, description="a tracked start is centimetres off: a dozen rounds converge")
     check_points: int = Field(1000, ge=20, description="frame points of a tracked frame's fitness")

@@ -20,6 +20,9 @@ from cadreg.site.bundle import Site
 from tracking_support import redkitchen_site
 
 FIRST = 250  # the tracked frames start here (the map is fused from 200..249)
+# The jump tests relocalize a frame the map sees well (confidence ~0.7): frames near FIRST + 40 relocalize at ~0.51,
+# at the edge of `uncertain`, where the test was about that edge rather than about tracking.
+JUMP = FIRST + 10
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +72,7 @@ def test_thirty_consecutive_frames_are_tracked_within_5cm(localizer: Localizer, 
 def test_a_jump_is_relocalized_not_tracked(localizer: Localizer, recorded: RecordedFrames) -> None:
     """A prediction 0.6 m off (the robot was carried away): the refinement from it fails the motion check, the
     frame is localized globally with the prediction as a prior, and the jump is not answered `ok` at once."""
-    frame, T_true = recorded.load(FIRST + 40)
+    frame, T_true = recorded.load(JUMP)
     wrong = T_true @ make_T(t=np.array([0.6, 0.0, 0.0]))
     tracked = localizer.track(frame, _state_at(wrong), t_s=1 / 30.0)
     r = tracked.result
@@ -81,7 +84,7 @@ def test_a_jump_is_relocalized_not_tracked(localizer: Localizer, recorded: Recor
     assert pose_errors(r.T_map_camera, T_true)[0] < 0.05
     assert not tracked.state.confirmed
     # the next frame tracks from the relocalized pose and is ok
-    nxt, T_next = recorded.load(FIRST + 41)
+    nxt, T_next = recorded.load(JUMP + 1)
     follow = localizer.track(nxt, tracked.state, t_s=2 / 30.0)
     assert follow.result.diagnostics.mode == "tracked" and follow.result.status == Status.OK
     assert pose_errors(follow.result.T_map_camera, T_next)[0] < 0.05 and follow.state.confirmed
@@ -91,7 +94,7 @@ def test_a_kidnapped_robot_is_placed_on_the_jump_frame(localizer: Localizer, rec
     """The prediction is 10 m away, off the map: tracked from it, the frame lies on the map nowhere, which refutes
     it, so a confident global answer stands at once (`ok`, mode relocalized, a note saying it jumped) rather than
     waiting for the next frame as a jump the prediction still contests does."""
-    frame, T_true = recorded.load(FIRST + 40)
+    frame, T_true = recorded.load(JUMP)
     far = make_T(t=np.array([10.0, 0.0, 0.0])) @ T_true
     tracked = localizer.track(frame, _state_at(far), t_s=1 / 30.0)
     r = tracked.result

@@ -43,12 +43,15 @@ class RefineOutcome:
     method: str
 
 
-def covariance_from_hessian(H: np.ndarray, error: float, inliers: int) -> np.ndarray | None:
-    """Pose covariance ≈ σ²·H⁻¹ with σ² the residual per degree of freedom (Gauss-Newton at the optimum)."""
+def covariance_from_hessian(H: np.ndarray, error: float, inliers: int, *,
+                            residuals_per_inlier: int = 3) -> np.ndarray | None:
+    """Pose covariance ≈ σ²·H⁻¹ with σ² the residual per degree of freedom (Gauss-Newton at the optimum).
+
+    residuals_per_inlier : 3 for GICP (a 3-D residual per pair), 1 for point-to-plane ICP."""
     if inliers <= 6 or not np.all(np.isfinite(H)):
         return None
     try:
-        cov = np.linalg.inv(H) * (error / max(inliers * 3 - 6, 1))
+        cov = np.linalg.inv(H) * (error / max(inliers * residuals_per_inlier - 6, 1))
     except np.linalg.LinAlgError:
         return None
     return 0.5 * (cov + cov.T)

@@ -121,6 +121,11 @@ def fuse_frames(
         legacy.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * config.voxel_size_m, max_nn=30))
         normals = np.asarray(legacy.normals, dtype=np.float32)
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    # The grid's blocks come out in the order its threads inserted them, a different order each run; the site
+    # build keeps the first point met per voxel, so that order made every fused site a little different (a test's
+    # relocalization at the edge of `ok` flipped about one run in four). Sorted by position, a fusion is repeatable.
+    order = np.lexsort(points.T)
+    points, colors, normals = points[order], colors[order], normals[order]
     labels = None
     if use_labels:
         def _vote_progress(done: int, _n: int) -> None:
