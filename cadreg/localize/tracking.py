@@ -47,7 +47,7 @@ from ..frame import Frame
 from ..geometry import rotation_angle_deg, transform_points
 from ..result import Diagnostics, Hypothesis, LocalizationResult, Refinement, Roi, Status
 from .points import FramePoints, frame_to_points
-from .refine import GICP_NEIGHBORS, RefineMap, covariance_from_hessian, crop_to_roi
+from .refine import GICP_NEIGHBORS, MIN_ROI_POINTS, RefineMap, covariance_from_hessian, crop_to_roi
 from .stages import StageTimer, confidence, low_overlap_confidence
 
 if TYPE_CHECKING:
@@ -234,17 +234,28 @@ def _refine(localizer: "Localizer", points: FramePoints, check_xyz: np.ndarray, 
     be further off (after a relocalization or dropped frames). Skipping the coarse step halves a tracked frame."""
     cfg = localizer.config.track
     rm = localizer.maps_at(predicted, points.xyz.mean(axis=0)).refine_map
+    xyz = _near_the_map(localizer, points.xyz, predicted)
     # point-to-plane needs no covariances of the frame's points (a third of a tracked frame's time for GICP's)
-    fine = small_gicp.voxelgrid_sampling(points.xyz, cfg.fine_voxel_m)
+    fine = small_gicp.voxelgrid_sampling(xyz, cfg.fine_voxel_m)
     if limits[0] <= cfg.fine_correspondence_m:
         out = _fine(localizer, rm, fine, check_xyz, prior, predicted, predicted, limits)
         if out.accepted:
             return out
-    coarse, _ = small_gicp.preprocess_points(points.xyz, localizer.config.refine.coarse_voxel_m,
-                                             num_neighbors=GICP_NEIGHBORS)
+    coarse, _ = small_gicp.preprocess_points(xyz, localizer.config.refine.coarse_voxel_m, num_neighbors=GICP_NEIGHBORS)
     T = rm.coarse_align(coarse, predicted, max_correspondence_m=cfg.coarse_correspondence_m,
                         max_iterations=cfg.coarse_iterations)
     return _fine(localizer, rm, fine, check_xyz, prior, predicted, T, limits)
+
+
+def _near_the_map(localizer: "Localizer", xyz: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+    """The frame points (colour-camera frame) that the prediction puts within the distance field's truncation
+    (0.5 m) of the map. Farther ones cannot pair with a map point within the correspondence distances (0.1, 0.2 m)
+    at any accepted correction, but small_gicp's nearest-neighbour search has no distance bound, and a frame that
+    looks past the map's edge spent 25-40 ms of ICP on them. Read in the field: a lookup a point."""
+    field = localizer.field
+    near = field.lookup(transform_points(predicted, xyz)) < field.truncate_m
+    # too few left to register: the frame as it is (it will not track, and the fitness will say so)
+    return xyz[near] if np.count_nonzero(near) >= MIN_ROI_POINTS else xyz
 
 
 def _fine(localizer: "Localizer", rm: RefineMap, fine: small_gicp.PointCloud, check_xyz: np.ndarray, prior: Track,
