@@ -125,4 +125,10 @@ def test_fpfh_in_a_building_searches_one_room_never_the_whole_building(twin_room
     assert not any("fpfh-ransac skipped" in n for n in named.diagnostics.notes)
     assert loc.maps.index(a).fpfh is not None and loc._fpfh is None  # one room's features, not the building's
     assert len(loc.maps.index(a).fpfh.target.points) < len(site.cloud("raw").points)
+    # the room's own box, not its refinement map's halo of the neighbour's points
+    from cadreg.localize.localizer import ROOM_MARGIN_M
+    target = np.asarray(loc.maps.index(a).fpfh.target.points)
+    assert np.all(target >= a.bounds[0] - ROOM_MARGIN_M - 1e-6) and np.all(target <= a.bounds[1] + ROOM_MARGIN_M + 1e-6)
+    halo = loc.maps.index(a).refine_map.xyz
+    assert not np.all((halo >= a.bounds[0] - ROOM_MARGIN_M) & (halo <= a.bounds[1] + ROOM_MARGIN_M))
     assert all(h.region == "a" for h in named.hypotheses if h.T_map_camera is not None)

@@ -66,6 +66,22 @@ def test_kabsch_triples_without_gravity() -> None:
     assert errs[:, 0].min() < 1e-6
 
 
+def test_kabsch_hypotheses_stop_at_the_cap() -> None:
+    """A building's graph has a hundred nodes of a class: the triples agreeing with a scan triple run to tens of
+    thousands. The cap holds (before, it ended only the innermost loop and one frame took 27 s), and the triples
+    come in order: the first ones are those of the uncapped enumeration."""
+    rng = np.random.default_rng(3)
+    room = rng.uniform(0.0, 4.0, (6, 3))
+    centroid = np.concatenate([room + np.array([6.0 * r, 0.0, 0.0]) for r in range(40)])  # 40 copies of a room
+    g = MapGraph([str(i) for i in range(len(centroid))], np.tile(np.arange(6) % 3, 40), centroid)
+    scan = centroid[[0, 1, 2, 3]] + rng.normal(0.0, 0.02, (4, 3))
+    every = kabsch_hypotheses(scan, g.cls[[0, 1, 2, 3]], g, max_hypotheses=10**9)
+    capped = kabsch_hypotheses(scan, g.cls[[0, 1, 2, 3]], g, max_hypotheses=100)
+    assert len(every) > 300 and len(capped) == 100
+    np.testing.assert_array_equal(capped.seed, every.seed[:100])
+    np.testing.assert_allclose(capped.R, every.R[:100])
+
+
 def test_sim_compares_edge_directions_under_the_hypothesis() -> None:
     g = _graph()
     T = _true_pose()

@@ -48,6 +48,8 @@ MIN_SCREEN_POINTS = 20
 # Cheapest first. FPFH + RANSAC runs only when the label-free search could not (no up direction): it costs
 # ten times more and, knowing nothing of gravity, is no better where the search finds nothing.
 FALLBACKS = ("bbs", "fpfh-ransac")
+# A building's FPFH + RANSAC registers against one room's box grown by this (walls scanned a little outside it).
+ROOM_MARGIN_M = 0.3
 # A point budget's voxel grows by this factor until the points fit (`_voxel_budget`).
 VOXEL_GROWTH = 1.15
 # Distinct candidates refined beyond the contenders when every contender sees through the map: two, since a
@@ -605,7 +607,12 @@ class Localizer:
             return None
         index = self.maps.index(room)
         if index.fpfh is None:
-            index.fpfh = FpfhRansac(index.refine_map.xyz, voxel_m=self.config.fallback.voxel_size_m)
+            # The room's own box, not its refinement map: that holds a halo of the neighbours' points (3 m), and
+            # their features and RANSAC over them took 18 s for one frame of a 100-room site.
+            xyz = index.refine_map.xyz
+            lo, hi = room.bounds[0] - ROOM_MARGIN_M, room.bounds[1] + ROOM_MARGIN_M
+            index.fpfh = FpfhRansac(xyz[np.all((xyz >= lo) & (xyz <= hi), axis=1)],
+                                    voxel_m=self.config.fallback.voxel_size_m)
         return index.fpfh
 
     def _label_free(self, scan: Scan, notes: list[str], rooms: list[Region]) -> Hypotheses | None:
