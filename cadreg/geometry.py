@@ -97,6 +97,20 @@ def kabsch(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = 
     return make_T(R, mq - R @ mp)
 
 
+def kabsch_many(source: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`kabsch` (unweighted) of one source (n, 3) onto many targets (m, n, 3) in one batched SVD:
+    R (m, 3, 3), t (m, 3) with target ≈ R @ source + t."""
+    P = np.asarray(source, dtype=float)
+    Q = np.asarray(targets, dtype=float)
+    mp, mq = P.mean(axis=0), Q.mean(axis=1)
+    H = np.einsum("ki,mkj->mij", P - mp, Q - mq[:, None]) / len(P)
+    U, _, Vt = np.linalg.svd(H)
+    V, Ut = np.swapaxes(Vt, 1, 2), np.swapaxes(U, 1, 2)
+    d = np.sign(np.linalg.det(V @ Ut))
+    R = V @ (np.concatenate([np.ones((len(d), 2)), d[:, None]], axis=1)[:, :, None] * Ut)
+    return R, mq - np.einsum("mij,j->mi", R, mp)
+
+
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Smallest rotation taking unit vector a onto unit vector b."""
     a = np.asarray(a, float) / np.linalg.norm(a)

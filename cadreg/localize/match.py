@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..geometry import kabsch, rotation_angle_deg
+from ..geometry import kabsch_many, rotation_angle_deg
 
 if TYPE_CHECKING:  # the site bundle pulls in the whole site build; the localizer is handed a loaded Site
     from ..site.bundle import Site
@@ -229,24 +229,13 @@ def kabsch_hypotheses(scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: Ma
         if len(k) == 0:
             continue
         Q = graph.centroid[np.stack([a[k], b[k], C[ic]], axis=1)]  # (m, 3, 3) map triples
-        R, t = _kabsch_batch(P, Q)
+        R, t = kabsch_many(P, Q)
         Rs.append(R); ts.append(t)
         seeds.append(np.stack([np.full(len(k), tri[0]), a[k]], axis=1))
         total += len(k)
     if not Rs:
         return Hypotheses.empty()
     return Hypotheses(np.concatenate(Rs), np.concatenate(ts), np.concatenate(seeds).astype(np.int64))
-
-
-def _kabsch_batch(P: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`geometry.kabsch` of one source triple P (3, 3) onto many targets Q (m, 3, 3): R (m, 3, 3), t (m, 3)."""
-    mp, mq = P.mean(axis=0), Q.mean(axis=1)
-    H = np.einsum("ki,mkj->mij", P - mp, Q - mq[:, None]) / len(P)
-    U, _, Vt = np.linalg.svd(H)
-    V, Ut = np.swapaxes(Vt, 1, 2), np.swapaxes(U, 1, 2)
-    d = np.sign(np.linalg.det(V @ Ut))
-    R = V @ (np.concatenate([np.ones((len(d), 2)), d[:, None]], axis=1)[:, :, None] * Ut)
-    return R, mq - np.einsum("mij,j->mi", R, mp)
 
 
 def score_graph(hyp: Hypotheses, scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: MapGraph, *,
