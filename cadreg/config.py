@@ -243,9 +243,10 @@ class TrackConfig(_Section):
     fine_correspondence_m: float = Field(0.1, gt=0)
     fine_iterations: int = Field(12, ge=1, description="a tracked start is centimetres off: a dozen rounds converge")
     check_points: int = Field(1000, ge=20, description="frame points of a tracked frame's fitness")
-    min_fitness: float = Field(0.4, ge=0, le=1, description="a tracked pose is answered 'ok' when at least this share "
-                               "of the frame lies on the map; lower than RefineConfig.min_fitness since the motion "
-                               "agrees too")
+    min_fitness: float = Field(0.4, ge=0, le=1, description="a tracked pose is answered when at least this share "
+                               "of the frame lies on the map (lower than RefineConfig.min_fitness since the motion "
+                               "agrees too); `ok` when its confidence also reaches MatchConfig.min_ok_confidence, "
+                               "as a search's, else `uncertain`")
     coast_fitness: float = Field(0.1, ge=0, le=1, description="below min_fitness but above this (the camera looks past "
                                  "the map's edge), a frame whose correction is small is answered low_overlap and the "
                                  "session follows it without a global search; below, tracking has failed")

@@ -128,15 +128,21 @@ def test_a_session_runs_one_global_search_at_a_time(server, recorded: RecordedFr
     import concurrent.futures
     import time
 
+    with Client(server.url, read_timeout_s=120.0) as client:
+        encoded = [replace(enc, meta=enc.meta.model_copy(update={"stamp_s": k / 30.0}))
+                   for k, enc in enumerate(client.encode((recorded, FIRST + 40 + k)) for k in range(3))]
+
     def send(k: int) -> dict:
         with Client(server.url, read_timeout_s=120.0) as client:
-            enc = client.encode((recorded, FIRST + 40 + k))
-            enc = replace(enc, meta=enc.meta.model_copy(update={"stamp_s": k / 30.0}))
-            return client.localize(SITE_ID, enc, session_id="one-search")
+            return client.localize(SITE_ID, encoded[k], session_id="one-search")
 
     with concurrent.futures.ThreadPoolExecutor(2) as pool:
         first = pool.submit(send, 0)
-        time.sleep(0.05)  # the first is in the pool (a global search takes ~100 ms or more)
+        # the second goes once the first holds the search lease (a global search takes ~100 ms or more); a fixed
+        # sleep lost that race on a loaded machine
+        deadline = time.monotonic() + 30.0
+        while server.service.sessions.leases() == 0 and not first.done() and time.monotonic() < deadline:
+            time.sleep(0.002)
         second = pool.submit(send, 1)
         a, b = first.result(), second.result()
     assert a["diagnostics"]["mode"] == "global" and a["status"] == "ok", a["diagnostics"]["notes"]

@@ -12,8 +12,10 @@ stages:
                 `Localizer.from_site`); accepted when the correction stays within what the camera can move in
                 the time since the state (`correction_limits`: the motion agrees) and the fitness holds;
                 hypotheses that fall behind the best are pruned
-    result      `tracked`: ok once a single hypothesis remains, ambiguous while several do; low_overlap (no pose,
-                the session follows on) while the camera looks past the map's edge (TrackConfig.coast_fitness)
+    result      `tracked`: ok once a single hypothesis remains and its confidence reaches the search's
+                MatchConfig.min_ok_confidence (uncertain below it, the session follows it), ambiguous while several
+                remain; low_overlap (no pose, the session follows on) while the camera looks past the map's edge
+                (TrackConfig.coast_fitness)
     global      nothing accepted, no live state or a gap longer than TrackConfig.max_gap_s: the whole localizer,
                 with the best prediction as a prior (`relocalized`), or from nothing (`global`); after a search
                 that found nothing, the next waits TrackConfig.search_interval_s (no_match at once meanwhile);
@@ -328,6 +330,11 @@ def _tracked_result(localizer: "Localizer", frame: Frame, state: TrackState, kep
                           + "): ambiguous until the following frames tell them apart")
     trust = confidence(best.fitness, best.rmse_m, best.fitness - rival, inlier_m=rc.inlier_m,
                        confident_margin=mc.confident_margin)
+    if status == Status.OK and trust < mc.min_ok_confidence:
+        # a search's rule too (`stages.answer_status`): on 7-Scenes the tracked poses below it (0.35-0.47, with
+        # 0.40-0.52 of the frame on the map) were 5-10 cm off where the session tracked back in from the map's edge
+        status = Status.UNCERTAIN
+        diag.notes.append(f"confidence {trust:.2f} below {mc.min_ok_confidence:g}: uncertain, the session follows it")
     result = LocalizationResult(status, best.T_map_camera, confidence=trust, covariance=best.covariance,
                                 hypotheses=hypotheses, diagnostics=diag, frame_id=frame.frame_id)
     return Tracked(result, TrackState(tracks, t_s, confirmed=True))
