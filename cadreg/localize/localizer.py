@@ -474,9 +474,10 @@ class Localizer:
 
     def _rival_margin(self, scores: list[float], poses: list[np.ndarray]) -> tuple[bool, float]:
         """(has a distinct rival, margin) of poses sorted best first (refined contenders, or the candidates when
-        only the best was refined): the rival is the best pose distinct from the winner, wherever it ranks. A runner-up that converged onto the winner is the winner again, not a
-        rival, and must not hide a distinct pose behind it (two twin rooms refined to 0.962 and 0.947 with a copy
-        of the first between them were answered `ok` with the whole score as margin)."""
+        only the best was refined): the rival is the best pose distinct from the winner, wherever it ranks. A
+        runner-up that converged onto the winner is the winner again, not a rival, and must not hide a distinct
+        pose behind it (two twin rooms refined to 0.962 and 0.947 with a copy of the first between them were
+        answered `ok` with the whole score as margin)."""
         for score, T in zip(scores[1:], poses[1:]):
             if self._distinct(T, poses[0]):
                 return True, scores[0] - score
