@@ -12,7 +12,9 @@ from cadreg.camera import CameraIntrinsics
 from cadreg.config import LocalizeConfig, MatchConfig
 from cadreg.errors import InvalidArgument, InvalidFrame
 from cadreg.localize import Localizer
-from cadreg.localize.stages import PROGRESS_STAGES, StageTimer, confidence, low_overlap_confidence
+from cadreg.localize.stages import (PROGRESS_STAGES, StageTimer, answer_status, confidence, low_overlap_confidence,
+                                   pose_std_m)
+from cadreg.result import Status
 from cadreg.localize.synthetic import look_pose, make_scene, render_frame
 from cadreg.result import Diagnostics
 from cadreg.site.bundle import Site
@@ -35,6 +37,25 @@ def test_confidence_formula() -> None:
     assert confidence(0.8, 0.05, 1.0, inlier_m=0.05, confident_margin=0.1) == pytest.approx(0.8 / np.e)
     assert 0.0 <= confidence(2.0, 0.0, 9.0, inlier_m=0.05, confident_margin=0.1) <= 1.0
     assert low_overlap_confidence(0.4) == pytest.approx(0.2)
+    # a pose the geometry lets slide twice the allowed spread keeps half its confidence; within it, all
+    assert confidence(1.0, 0.0, 0.5, inlier_m=0.05, confident_margin=0.1, pose_std=0.008,
+                      max_pose_std=0.004) == pytest.approx(0.5)
+    assert confidence(1.0, 0.0, 0.5, inlier_m=0.05, confident_margin=0.1, pose_std=0.002, max_pose_std=0.004) == 1.0
+
+
+def test_a_pose_the_geometry_lets_slide_is_uncertain() -> None:
+    """The largest translation standard deviation of the refined pose's covariance decides: a frame of one wall
+    pins the pose along the wall's normal only."""
+    cov = np.diag([1e-6, 1e-6, 1e-6, 0.001 ** 2, 0.013 ** 2, 0.0005 ** 2])
+    R = np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))[0]
+    cov[3:, 3:] = R @ cov[3:, 3:] @ R.T  # in any axes
+    assert pose_std_m(cov) == pytest.approx(0.013)
+    assert pose_std_m(None) == 0.0
+    rules = dict(min_fitness=0.5, ambiguity_margin=0.03, max_see_through=0.1, min_ok_confidence=0.5)
+    assert answer_status(0.9, 0.5, False, 0.0, 0.8, **rules, pose_std=0.013, max_pose_std=0.004) == Status.UNCERTAIN
+    assert answer_status(0.9, 0.5, False, 0.0, 0.8, **rules, pose_std=0.002, max_pose_std=0.004) == Status.OK
+    # even with a rival: the pose itself is not pinned
+    assert answer_status(0.9, 0.0, True, 0.0, 0.8, **rules, pose_std=0.013, max_pose_std=0.004) == Status.UNCERTAIN
 
 
 def test_stage_timer_adds_up_and_reports_progress() -> None:

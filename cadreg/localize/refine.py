@@ -24,10 +24,13 @@ GICP_NEIGHBORS = 10
 MIN_ROI_POINTS = 100
 
 
-def crop_to_roi(points: FramePoints, radius_m: float) -> tuple[FramePoints, np.ndarray]:
-    """The frame points within `radius_m` of their centroid (the whole frame when fewer than MIN_ROI_POINTS are),
-    and that centroid (colour-camera frame): the region of interest of paper §2.5 as seen from the frame."""
-    center_camera = points.xyz.mean(axis=0)
+def crop_to_roi(points: FramePoints, radius_m: float,
+                center_camera: np.ndarray | None = None) -> tuple[FramePoints, np.ndarray]:
+    """The frame points within `radius_m` of `center_camera` (default: their centroid; the whole frame when fewer
+    than MIN_ROI_POINTS are), and that centre (colour-camera frame): the region of interest of paper §2.5 as seen
+    from the frame."""
+    if center_camera is None:
+        center_camera = points.xyz.mean(axis=0)
     in_roi = np.flatnonzero(np.linalg.norm(points.xyz - center_camera, axis=1) <= radius_m)
     return (points.subset(in_roi) if len(in_roi) >= MIN_ROI_POINTS else points), center_camera
 

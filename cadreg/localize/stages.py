@@ -128,18 +128,31 @@ class StageTimer:
 
 
 def confidence(fitness: float, rmse_m: float, margin: float, *, inlier_m: float, confident_margin: float,
-               see_through: float = 0.0, max_see_through: float = 1.0) -> float:
+               see_through: float = 0.0, max_see_through: float = 1.0, pose_std: float = 0.0,
+               max_pose_std: float = np.inf) -> float:
     """How much to trust a refined pose, in [0, 1]:
 
         fitness · exp(−(rmse_m / inlier_m)²) · min(1, ½ + ½ · margin / confident_margin) · max(0, 1 − s / s_max)
+                · min(1, σ_max / σ)
 
     how much of the frame lies on the map, how tightly, how clearly the best beat its distinct rival (a tie
-    halves the confidence, a margin of `confident_margin` or more leaves it whole), and how little of the map in
-    view the frame sees through (s = `see_through`, s_max = `max_see_through`).
+    halves the confidence, a margin of `confident_margin` or more leaves it whole), how little of the map in
+    view the frame sees through (s = `see_through`, s_max = `max_see_through`), and how firmly the frame's
+    geometry pins the pose (σ = `pose_std`, metres, from the refinement's covariance; σ_max = `max_pose_std`).
     """
     value = fitness * np.exp(-(rmse_m / inlier_m) ** 2) * min(1.0, 0.5 + 0.5 * margin / confident_margin)
     value *= max(0.0, 1.0 - see_through / max_see_through)
+    if pose_std > 0.0:
+        value *= min(1.0, max_pose_std / pose_std)
     return float(np.clip(value, 0.0, 1.0))
+
+
+def pose_std_m(covariance: np.ndarray | None) -> float:
+    """The largest standard deviation, metres, of a pose's translation under its (6, 6) covariance over
+    (rx, ry, rz, tx, ty, tz): how far the frame's geometry lets the pose slide. 0 when there is none."""
+    if covariance is None:
+        return 0.0
+    return float(np.sqrt(max(np.linalg.eigvalsh(np.asarray(covariance)[3:, 3:])[-1], 0.0)))
 
 
 def low_overlap_confidence(fitness: float) -> float:
@@ -149,15 +162,17 @@ def low_overlap_confidence(fitness: float) -> float:
 
 def answer_status(fitness: float, margin: float, has_rival: bool, see_through: float, trust: float, *,
                   min_fitness: float, ambiguity_margin: float, max_see_through: float,
-                  min_ok_confidence: float) -> Status:
+                  min_ok_confidence: float, pose_std: float = 0.0, max_pose_std: float = np.inf) -> Status:
     """The status of a refined pose: `low_overlap` when too little of the frame lies on the map; `uncertain` when
-    the frame sees through more than max_see_through of the map in view (close rival or not); `ambiguous` when a
-    distinct rival scored within the ambiguity margin; `uncertain` when the confidence is below min_ok_confidence;
-    else `ok`. Only `ok` claims the pose is right."""
+    the frame sees through more than max_see_through of the map in view, or when the pose may slide by more than
+    max_pose_std (close rival or not); `ambiguous` when a distinct rival scored within the ambiguity margin;
+    `uncertain` when the confidence is below min_ok_confidence; else `ok`. Only `ok` claims the pose is right."""
     if fitness < min_fitness:
         return Status.LOW_OVERLAP
     if see_through > max_see_through:
         return Status.UNCERTAIN  # whatever its rivals: the frame contradicts the map at this pose
+    if pose_std > max_pose_std:
+        return Status.UNCERTAIN  # whatever its rivals: the frame's geometry does not pin the pose
     if has_rival and margin < ambiguity_margin:
         return Status.AMBIGUOUS
     if trust < min_ok_confidence:
