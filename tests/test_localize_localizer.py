@@ -221,3 +221,38 @@ def test_the_margin_is_to_the_best_distinct_refined_rival(localizer) -> None:
     assert localizer._rival_margin([0.9, 0.8], [here, same]) == (False, 0.9)
     has_rival, margin = localizer._rival_margin([0.9, 0.85], [here, there])
     assert has_rival and margin == pytest.approx(0.05)
+
+
+def test_a_rival_the_frame_sees_through_at_its_coarse_pose_is_not_refined(scene, localizer, monkeypatch) -> None:
+    """A contender other than the best at which the frame sees through the map far beyond max_see_through keeps its
+    coarse pose and a score of 0 without a refinement (each costs a GICP, and such a one never became credible);
+    it still counts as the distinct rival it is."""
+    import cadreg.localize.localizer as localizer_module
+    from cadreg.localize.stages import Candidate, StageTimer
+    from cadreg.result import Diagnostics, Hypothesis
+
+    frame, T = _views(scene, 1, seed=5)[0]
+    diag = Diagnostics(site_id="s", bundle_version="v")
+    scan = localizer._scan(frame, diag, StageTimer(diag.stage_ms))
+    ahead = T @ make_T(t=np.array([0.0, 0.0, 0.7]))  # 70 cm forward: the map stands in front of what was measured
+    assert localizer.view_check.see_through(ahead, scan.zbuf, scan.K) > 0.5
+
+    def candidate(T_map_camera, score):
+        return Candidate(T_map_camera, score, Hypothesis(T_map_camera, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64))
+
+    starts = []
+    real_refine_one = Localizer._refine_one
+
+    def counting(self, refine_map, points, T_start, method):
+        starts.append(T_start)
+        return real_refine_one(self, refine_map, points, T_start, method)
+
+    monkeypatch.setattr(Localizer, "_refine_one", counting)
+    best, rival = candidate(T, 0.9), candidate(ahead, 0.89)
+    choice = localizer._refine(scan, [best, rival], "small_gicp", diag)
+    assert all(np.allclose(s, T) for s in starts)  # only the best was refined (and maybe its slide check)
+    assert choice.candidate is best and choice.has_rival and choice.margin > 0.5
+    monkeypatch.setattr(localizer_module, "HOPELESS_SEE_THROUGH", 1e9)  # the rule off: the rival is refined too
+    starts.clear()
+    localizer._refine(scan, [best, rival], "small_gicp", diag)
+    assert any(np.allclose(s, ahead) for s in starts)
