@@ -256,3 +256,24 @@ def test_a_rival_the_frame_sees_through_at_its_coarse_pose_is_not_refined(scene,
     starts.clear()
     localizer._refine(scan, [best, rival], "small_gicp", diag)
     assert any(np.allclose(s, ahead) for s in starts)
+
+
+def test_only_a_pose_the_geometry_alone_found_is_held_to_the_slide_limit(scene) -> None:
+    """`MatchConfig.max_pose_std_m`: the graph's object matches pin a pose along the directions the refinement
+    leaves free, so a graph answer is not held to it; the label-free search's answer has only the geometry."""
+    from cadreg.config import MatchConfig
+
+    strict = Localizer.from_site(scene.site, LocalizeConfig(match=MatchConfig(max_pose_std_m=1e-6)))
+    loose = Localizer.from_site(scene.site)
+    for frame, T in _views(scene, 6, seed=21, min_objects=3):
+        graph = strict.localize(frame)
+        if graph.status != Status.OK or graph.diagnostics.method != "cadreg":
+            continue
+        assert loose.localize(frame).status == Status.OK
+        geometric = strict.localize(replace(frame, labels=None))
+        if geometric.diagnostics.method.startswith("fallback") and loose.localize(
+                replace(frame, labels=None)).status == Status.OK:
+            assert geometric.status == Status.UNCERTAIN
+            assert any("pose std" in n for n in geometric.diagnostics.notes)
+            return
+    pytest.fail("no view gave an ok graph answer and an ok label-free one")

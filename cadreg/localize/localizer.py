@@ -537,14 +537,18 @@ class Localizer:
         # How far the frame's geometry lets the pose slide: one wall, or a floor and one wall, fit anywhere along
         # them. On the scene0470 renders without labels the four confident wrong answers (0.50-0.93) could slide
         # 0.44-1.15 cm (one standard deviation) and every right one at most 0.28; on 7-Scenes the right ones 0.19.
+        # Only a pose the geometry alone found is held to it: the graph's object matches pin a pose along the
+        # directions the refinement leaves free (it does not move it there), and in the 10-room building right
+        # graph answers could slide 0.44-0.54 cm.
         std = pose_std_m(out.covariance)
+        slide = 0.0 if winner.hypothesis.source == "graph" else std
         trust = confidence(choice.fitness, choice.rmse_m, choice.margin, inlier_m=rc.inlier_m,
                            confident_margin=mc.confident_margin, see_through=choice.see_through,
-                           max_see_through=mc.max_see_through, pose_std=std, max_pose_std=mc.max_pose_std_m)
+                           max_see_through=mc.max_see_through, pose_std=slide, max_pose_std=mc.max_pose_std_m)
         status = answer_status(choice.fitness, choice.margin, choice.has_rival, choice.see_through, trust,
                                min_fitness=rc.min_fitness, ambiguity_margin=mc.ambiguity_margin,
                                max_see_through=mc.max_see_through, min_ok_confidence=mc.min_ok_confidence,
-                               pose_std=std, max_pose_std=mc.max_pose_std_m)
+                               pose_std=slide, max_pose_std=mc.max_pose_std_m)
         diag.notes.append(f"trust: fitness {choice.fitness:.3f}, rmse {100 * choice.rmse_m:.2f} cm, margin "
                           f"{choice.margin:.3f}, see-through {choice.see_through:.3f}, pose std {100 * std:.2f} cm")
         if status == Status.LOW_OVERLAP:
