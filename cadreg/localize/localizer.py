@@ -538,7 +538,7 @@ class Localizer:
         hypotheses = [c.hypothesis for c in candidates[:top_k]]
         # How far the frame's geometry lets the pose slide: one wall, or a floor and one wall, fit anywhere along
         # them. On the scene0470 renders without labels the four confident wrong answers (0.50-0.93) could slide
-        # 0.44-1.15 cm (one standard deviation) and every right one at most 0.28; on 7-Scenes the right ones 0.19.
+        # 0.44-1.15 cm (one standard deviation) and every right one at most 0.28; on 7-Scenes the right ones 0.34.
         # Only a pose the geometry alone found is held to it: the graph's object matches pin a pose along the
         # directions the refinement leaves free (it does not move it there), and in the 10-room building right
         # graph answers could slide 0.44-0.54 cm.
@@ -565,7 +565,8 @@ class Localizer:
             status = Status.UNCERTAIN
         if status == Status.UNCERTAIN:
             # Weak support: the refined pose goes first among the hypotheses, but it is not claimed.
-            diag.notes.append(f"uncertain: confidence {trust:.2f}, see-through {choice.see_through:.2f}, pose std {100 * std:.2f} cm")
+            diag.notes.append(f"uncertain: confidence {trust:.2f}, see-through {choice.see_through:.2f}, "
+                              f"pose std {100 * std:.2f} cm")
             best = replace(winner.hypothesis, T_map_camera=T)
             return LocalizationResult(Status.UNCERTAIN, None, confidence=trust, hypotheses=[best] + hypotheses[:top_k - 1],
                                       diagnostics=diag, frame_id=frame_id)
