@@ -79,27 +79,9 @@ def pose_errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3])), rotation_angle_deg(dT[:3, :3])
 
 
-def kabsch(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-    """Least-squares rigid T_target_source with target ≈ R @ source + t (paper eq. 9).
-
-    source, target : (n, 3) float, n >= 3 for a unique answer (n = 2 leaves a rotation about the axis free).
-    """
-    P = np.asarray(source, dtype=float)
-    Q = np.asarray(target, dtype=float)
-    w = np.ones(len(P)) if weights is None else np.asarray(weights, dtype=float)
-    w = w / w.sum()
-    mp = w @ P
-    mq = w @ Q
-    H = (P - mp).T @ ((Q - mq) * w[:, None])
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return make_T(R, mq - R @ mp)
-
-
 def kabsch_many(source: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`kabsch` (unweighted) of one source (n, 3) onto many targets (m, n, 3) in one batched SVD:
-    R (m, 3, 3), t (m, 3) with target ≈ R @ source + t."""
+    """Least-squares rigid fits (Kabsch, paper eq. 9) of one source (n, 3) onto many targets (m, n, 3) in one
+    batched SVD: R (m, 3, 3), t (m, 3) with target ≈ R @ source + t; n >= 3 for a unique answer."""
     P = np.asarray(source, dtype=float)
     Q = np.asarray(targets, dtype=float)
     mp, mq = P.mean(axis=0), Q.mean(axis=1)
