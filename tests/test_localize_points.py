@@ -9,7 +9,7 @@ from cadreg.camera import CameraIntrinsics
 from cadreg.errors import InvalidFrame
 from cadreg.frame import Frame
 from cadreg.geometry import make_T
-from cadreg.localize.points import frame_to_points, voxel_downsample, voxel_indices
+from cadreg.localize.points import _project_to_color, frame_to_points, voxel_downsample, voxel_indices
 
 
 def _plane_frame(depth_m: float = 2.0, *, color_size=(64, 48), T_color_depth=None) -> Frame:
@@ -64,6 +64,24 @@ def test_stride_depth_range_and_missing_labels() -> None:
     assert np.all(frame_to_points(f).labels == -1)
 
 
+def test_registered_frame_reads_the_pixels_the_projection_would() -> None:
+    # A registered frame (same intrinsics, identity T_color_depth) skips the projection into the colour image;
+    # it must give exactly what the projection gives, on a depth image with holes and far pixels.
+    rng = np.random.default_rng(3)
+    f = _plane_frame(2.0, color_size=(32, 24))
+    f.depth = rng.integers(0, 7000, size=f.depth.shape).astype(np.uint16)
+    f.color = rng.integers(0, 256, size=f.color.shape).astype(np.uint8)
+    f.labels = rng.integers(0, 40, size=f.labels.shape).astype(np.uint16)
+    p = frame_to_points(f, pixel_stride=1)
+    v, u = np.nonzero((f.depth / 1000.0 > 0.1) & (f.depth / 1000.0 < 6.0))
+    z = f.depth[v, u] / 1000.0
+    K = f.depth_intrinsics
+    xyz, ui, vi = _project_to_color(f, np.stack([(u - K.cx) * z / K.fx, (v - K.cy) * z / K.fy, z], axis=1))
+    assert np.array_equal(p.xyz, xyz)
+    assert np.array_equal(p.rgb, f.color[vi, ui] / 255.0)
+    assert np.array_equal(p.labels, f.labels[vi, ui])
+
+
 def test_voxel_downsample_keeps_one_point_per_voxel() -> None:
     rng = np.random.default_rng(0)
     xyz = rng.uniform(0, 1, size=(5000, 3))
@@ -71,6 +89,9 @@ def test_voxel_downsample_keeps_one_point_per_voxel() -> None:
     assert len(idx) == 64
     keys = np.floor(xyz[idx] / 0.25)
     assert len(np.unique(keys, axis=0)) == 64
+    # the first point met in each voxel, in the points' order
+    _, first = np.unique(np.floor(xyz / 0.25), axis=0, return_index=True)
+    assert np.array_equal(idx, np.sort(first))
     f = _plane_frame(2.0, color_size=(32, 24))
     d = voxel_downsample(frame_to_points(f, pixel_stride=1), 0.5)
     assert 0 < len(d) < 32 * 24 and d.rgb.shape == (len(d), 3)

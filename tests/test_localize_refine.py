@@ -97,7 +97,7 @@ def test_fitness_and_agreement(scene_and_frame) -> None:
     far = rmap.fitness(transform_points(make_T(t=[0.0, 0.0, 5.0]) @ T, pts.xyz))
     assert far[0] == 0.0
     cls = np.full(len(pts), -1)
-    geo, sem, col = rmap.agreement(transform_points(T, pts.xyz), pts.rgb, cls)
+    geo, sem, col = rmap.agreement(transform_points(T, pts.xyz), rgb_to_lab(pts.rgb), cls)
     assert geo > 0.95 and col > 0.7
-    wrong = rmap.agreement(transform_points(T, pts.xyz), 1.0 - pts.rgb, cls)
+    wrong = rmap.agreement(transform_points(T, pts.xyz), rgb_to_lab(1.0 - pts.rgb), cls)
     assert wrong[2] < col - 0.3

@@ -30,6 +30,7 @@ from ..pointset import PointSet
 from ..site.bundle import Site
 from ..site.regions import CAMERA_MARGIN_M, Region
 from .cluster import cluster_objects
+from .color_gicp import rgb_to_lab
 from .bbs import GridPyramid, map_direction_histogram, polish, yaw_candidates
 from .fallback import FpfhRansac
 from .gravity import estimate_floor, map_floor_height, map_up_axis, planar_normals
@@ -257,7 +258,7 @@ class Localizer:
         fit = rng.choice(len(down), min(fc.fit_points, len(down)), replace=False)
         check = rng.choice(len(points), min(fc.check_points, len(points)), replace=False)
         return Scan(points, down, class_index, clusters, floor, score_xyz=down.xyz[score], fit_xyz=down.xyz[fit],
-                    fit_rgb=down.rgb[fit], fit_cls=class_index[fit], check_xyz=points.xyz[check],
+                    fit_lab=rgb_to_lab(down.rgb[fit]), fit_cls=class_index[fit], check_xyz=points.xyz[check],
                     zbuf=ViewCheck.zbuffer(down.xyz, frame.depth_intrinsics), K=frame.depth_intrinsics,
                     center_camera=points.xyz.mean(axis=0), search=frame.search_region)
 
@@ -733,7 +734,7 @@ class Localizer:
         """Geometric fitness weighted by label and colour agreement of the scan's fit sample placed by T: geometry
         alone cannot tell a wall from the opposite wall or a chair seen from above turned by 90°."""
         mc = self.config.match
-        geo, sem, col = self.maps_at(T_map_camera, scan.center_camera).refine_map.agreement(transform_points(T_map_camera, scan.fit_xyz), scan.fit_rgb,
+        geo, sem, col = self.maps_at(T_map_camera, scan.center_camera).refine_map.agreement(transform_points(T_map_camera, scan.fit_xyz), scan.fit_lab,
                                                   scan.fit_cls, inlier_m=self.config.refine.inlier_m)
         return geo * (1.0 - mc.semantic_weight + mc.semantic_weight * sem) * (1.0 - mc.color_weight + mc.color_weight * col)
 

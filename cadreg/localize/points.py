@@ -41,11 +41,34 @@ def frame_to_points(frame: Frame, *, pixel_stride: int = 2, min_depth_m: float =
     Points whose projection falls outside the colour image are dropped: they have neither colour nor label.
     """
     K = frame.depth_intrinsics
-    v, u = np.mgrid[0:K.height:pixel_stride, 0:K.width:pixel_stride]
-    z = frame.depth[v, u].astype(np.float64) / frame.depth_scale
+    z = frame.depth[::pixel_stride, ::pixel_stride].astype(np.float64) / frame.depth_scale
     ok = (z > min_depth_m) & (z < max_depth_m)
-    u, v, z = u[ok].astype(np.float64), v[ok].astype(np.float64), z[ok]
+    v, u = np.nonzero(ok)
+    v *= pixel_stride
+    u *= pixel_stride
+    z = z[ok]
     xyz_depth = np.stack([(u - K.cx) * z / K.fx, (v - K.cy) * z / K.fy, z], axis=1)
+    if _registered(frame):
+        # Depth already registered to colour (renders, 7-Scenes, most phone APIs): every point projects onto its
+        # own pixel, so the reprojection would give back u, v and keep every point.
+        xyz, ui, vi = xyz_depth, u, v
+    else:
+        xyz, ui, vi = _project_to_color(frame, xyz_depth)
+    rgb = frame.color[vi, ui].astype(np.float64) / 255.0
+    if frame.labels is not None:
+        labels = frame.labels[vi, ui].astype(np.int64)
+    else:
+        labels = np.full(len(xyz), -1, dtype=np.int64)
+    return FramePoints(xyz, rgb, labels)
+
+
+def _registered(frame: Frame) -> bool:
+    return frame.color_intrinsics == frame.depth_intrinsics and bool(np.array_equal(frame.T_color_depth, np.eye(4)))
+
+
+def _project_to_color(frame: Frame, xyz_depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Depth-camera points -> (points in the colour camera, column, row of their colour pixel), keeping those that
+    fall inside the colour image."""
     T = frame.T_color_depth
     xyz = xyz_depth @ T[:3, :3].T + T[:3, 3]
     C = frame.color_intrinsics
@@ -55,14 +78,7 @@ def frame_to_points(frame: Frame, *, pixel_stride: int = 2, min_depth_m: float =
         uc = np.rint(C.fx * xyz[:, 0] / zc + C.cx)
         vc = np.rint(C.fy * xyz[:, 1] / zc + C.cy)
     inside = front & (uc >= 0) & (uc < C.width) & (vc >= 0) & (vc < C.height)
-    xyz = xyz[inside]
-    ui, vi = uc[inside].astype(np.intp), vc[inside].astype(np.intp)
-    rgb = frame.color[vi, ui].astype(np.float64) / 255.0
-    if frame.labels is not None:
-        labels = frame.labels[vi, ui].astype(np.int64)
-    else:
-        labels = np.full(len(xyz), -1, dtype=np.int64)
-    return FramePoints(xyz, rgb, labels)
+    return xyz[inside], uc[inside].astype(np.intp), vc[inside].astype(np.intp)
 
 
 def voxel_indices(xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
@@ -72,12 +88,22 @@ def voxel_indices(xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
     """
     if len(xyz) == 0:
         return np.zeros(0, dtype=np.intp)
-    keys = np.floor(xyz / voxel_size_m).astype(np.int64)
-    keys -= keys.min(axis=0)
-    dims = keys.max(axis=0) + 1
-    flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-    _, first = np.unique(flat, return_index=True)
-    return np.sort(first)
+    # Axis by axis into contiguous rows: reductions over the columns of an (n, 3) array are strided, and this runs
+    # several times a frame.
+    keys = np.empty((3, len(xyz)), dtype=np.int64)
+    for axis in range(3):
+        keys[axis] = np.floor(xyz[:, axis] / voxel_size_m)
+    lo = keys.min(axis=1)
+    dims = keys.max(axis=1) - lo + 1
+    keys -= lo[:, None]
+    flat = (keys[0] * dims[1] + keys[1]) * dims[2] + keys[2]
+    # np.unique(return_index=True) less its unused outputs: the first of each run of a stable sort.
+    order = np.argsort(flat, kind="stable")
+    ordered = flat[order]
+    first = np.empty(len(flat), dtype=bool)
+    first[0] = True
+    np.not_equal(ordered[1:], ordered[:-1], out=first[1:])
+    return np.sort(order[first])
 
 
 def voxel_downsample(points: FramePoints, voxel_size_m: float) -> FramePoints:

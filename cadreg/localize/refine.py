@@ -132,11 +132,12 @@ class RefineMap:
         rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else 0.0
         return float(ok.mean()), rmse
 
-    def agreement(self, xyz_map: np.ndarray, rgb: np.ndarray, cls: np.ndarray, *, inlier_m: float = 0.05,
+    def agreement(self, xyz_map: np.ndarray, lab: np.ndarray, cls: np.ndarray, *, inlier_m: float = 0.05,
                   color_scale: float = 25.0) -> tuple[float, float, float]:
         """(geometric fitness, semantic agreement, colour agreement) of frame points placed in the map.
 
-        xyz_map (n, 3) map frame; rgb (n, 3) in [0, 1]; cls (n,) class index, -1 none, or all -1 without labels.
+        xyz_map (n, 3) map frame; lab (n, 3) CIE Lab colours (`rgb_to_lab`: converted once per frame, not per
+        hypothesis); cls (n,) class index, -1 none, or all -1 without labels.
         Semantic: among inliers where the frame or the map has an object class, the fraction whose classes agree
         (1 when there is none). Colour: mean exp(-(ΔE / color_scale)²) over inliers (CIE76 ΔE).
         """
@@ -150,7 +151,7 @@ class RefineMap:
         fc, mc = cls[ok], self.fit_cls[nn]
         either = (fc >= 0) | (mc >= 0)
         sem = float((fc[either] == mc[either]).mean()) if either.sum() >= 10 else 1.0
-        dE = np.linalg.norm(rgb_to_lab(rgb[ok]) - self.fit_lab[nn], axis=1)
+        dE = np.linalg.norm(lab[ok] - self.fit_lab[nn], axis=1)
         col = float(np.exp(-(dE / color_scale) ** 2).mean())
         return float(ok.mean()), sem, col
 

@@ -60,12 +60,21 @@ class DistanceField:
         return self
 
     def _flat_index(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
-        out = np.zeros(x.shape, dtype=np.int64)
+        # Float arithmetic in place, one cast at the end: scoring thousands of hypotheses gathers millions of cells
+        # a frame, and the per-axis int64 temporaries cost more than the gather. Cell indices are integers far
+        # below 2**53, so the float sum is exact; fmax/fmin (not clip) send a NaN coordinate to the border cell.
+        out = np.zeros(x.shape, dtype=np.float64)
+        cell = np.empty(x.shape, dtype=np.float64)
         for axis, c in enumerate((x, y, z)):
-            i = np.floor((c - self.origin[axis]) / self.voxel_m).astype(np.int64) + 1
-            np.clip(i, 0, self.dims[axis] + 1, out=i)
-            out += i * self._strides[axis]
-        return out
+            np.subtract(c, self.origin[axis], out=cell)
+            np.divide(cell, self.voxel_m, out=cell)
+            np.floor(cell, out=cell)
+            cell += 1.0
+            np.fmax(cell, 0.0, out=cell)
+            np.fmin(cell, float(self.dims[axis] + 1), out=cell)
+            cell *= float(self._strides[axis])
+            out += cell
+        return out.astype(np.intp)
 
     def surface_points(self, spacing_m: float) -> np.ndarray:
         """(m, 3) float64 centres of the cells within half a voxel of the map, thinned to one per `spacing_m` cube

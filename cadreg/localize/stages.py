@@ -38,7 +38,7 @@ class Scan:
     floor : up direction (and camera height) from the floor, the client's gravity or the frame's surfaces; None
         when none could be found.
     score_xyz : (≤ score_points, 3) float64 sample of `down` for the distance-field check.
-    fit_xyz, fit_rgb, fit_cls : a sample of `down` (≤ fit_points): positions, colours in [0, 1], class index, for
+    fit_xyz, fit_lab, fit_cls : a sample of `down` (≤ fit_points): positions, CIE Lab colours, class index, for
         the label and colour agreement that ranks coarse-aligned candidates.
     check_xyz : (≤ check_points, 3) float64 sample of `points` for the final fitness.
     zbuf : coarse z-buffer of `points` (`score.ViewCheck.zbuffer`) for the free-space check; K : the depth
@@ -56,7 +56,7 @@ class Scan:
     floor: Floor | None
     score_xyz: np.ndarray
     fit_xyz: np.ndarray
-    fit_rgb: np.ndarray
+    fit_lab: np.ndarray
     fit_cls: np.ndarray
     check_xyz: np.ndarray
     zbuf: np.ndarray | None = None

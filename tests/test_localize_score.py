@@ -1,0 +1,35 @@
+"""The distance field that scores hypotheses (localize/score.py): it reads the distance to the nearest map point to
+within about half a voxel, the truncation beyond it and outside the grid, and the truncation for coordinates that
+are not finite (a degenerate hypothesis must score zero, not read an arbitrary cell)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from cadreg.localize.score import DistanceField, inlier_score, score_poses
+
+
+def test_field_reads_the_nearest_map_distance_and_the_truncation_outside() -> None:
+    rng = np.random.default_rng(0)
+    room = rng.uniform([0, 0, 0], [2, 1.5, 1], size=(4000, 3))
+    field = DistanceField(room, voxel_m=0.03, truncate_m=0.5)
+    probes = rng.uniform([-0.25, -0.25, -0.25], [2.25, 1.75, 1.25], size=(20000, 3))  # inside the 0.3 m margin
+    exact = np.minimum(cKDTree(room).query(probes)[0], 0.5)
+    # the grid's distance is exact at cell centres; a probe lies up to half a cell diagonal from its centre
+    assert np.max(np.abs(field.lookup(probes) - exact)) <= np.sqrt(3) * 0.03 / 2 + 0.03
+    far = np.array([[50.0, 0.5, 0.5], [0.5, -40.0, 0.5], [np.nan, 0.5, 0.5], [0.5, np.inf, 0.5], [0.5, 0.5, -np.inf]])
+    assert np.all(field.lookup(far) == np.float32(0.5))
+
+
+def test_score_poses_scores_each_pose_like_one_lookup() -> None:
+    rng = np.random.default_rng(1)
+    room = rng.uniform([0, 0, 0], [2, 1.5, 1], size=(4000, 3))
+    field = DistanceField(room, voxel_m=0.03)
+    pts = room[rng.choice(len(room), 300)]
+    R = np.stack([np.eye(3)] * 3)
+    t = np.array([[0.0, 0.0, 0.0], [0.02, 0.0, 0.0], [5.0, 5.0, 5.0]])
+    scores = score_poses(field, pts, R, t, tau_m=0.1)
+    for k in range(3):
+        assert scores[k] == inlier_score(field.lookup(pts + t[k]), 0.1)
+    assert scores[0] > 0.9 and scores[2] == 0.0
