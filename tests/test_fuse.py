@@ -13,10 +13,11 @@ from cadreg.cli.main import main
 from cadreg.cli.render_cmd import parse_range
 from cadreg.config import FuseConfig, RenderConfig
 from cadreg.errors import ConfigError
+from cadreg.geometry import make_T, transform_points
 from cadreg.io.frames import FramesWriter, RecordedFrames
 from cadreg.render import LabelledMesh, render_frames
 from cadreg.site.bundle import Site
-from cadreg.site.fuse import color_in_depth_camera, fuse_frames, map_accuracy
+from cadreg.site.fuse import color_in_depth_camera, fuse_frames, map_accuracy, pose_offset
 
 
 def median_distance_to_map(map_points: np.ndarray, frames: RecordedFrames, indices) -> float:
@@ -40,6 +41,28 @@ def test_fuse_redkitchen_few_frames(redkitchen_dir: Path) -> None:
     again = fuse_frames(frames, range(0, 20), config=FuseConfig(voxel_size_m=0.03))
     for a, b in ((cloud.points, again.points), (cloud.colors, again.colors), (cloud.normals, again.normals)):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.realdata
+def test_pose_offset_measures_how_far_recorded_poses_disagree_with_the_map(redkitchen_dir: Path) -> None:
+    frames = RecordedFrames.open(redkitchen_dir)
+    config = FuseConfig(voxel_size_m=0.03)
+    cloud = fuse_frames(frames, range(0, 20), config=config)
+    points, normals = cloud.points.astype(np.float64), cloud.normals.astype(np.float64)
+    # The map's own frames agree with it.
+    same = pose_offset(points, normals, frames, range(5, 15), config=config)
+    assert same["frames"] == 10 and same["camera_offset_m"] < 0.01 and same["rotation_deg"] < 0.5
+    assert same["fitness"] > 0.8
+    # A map moved by 4 cm and turned by 1.5° about its z axis, as if its frames' poses had drifted: the frames' recorded
+    # poses are off from it by what the move does to their cameras.
+    centres = np.array([frames.pose(i)[:3, 3] for i in range(5, 15)])
+    angle = np.radians(1.5)
+    R = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+    pivot = centres.mean(axis=0)
+    T_moved_map = make_T(R, pivot - R @ pivot + np.array([0.04, 0.0, 0.0]))
+    moved = pose_offset(transform_points(T_moved_map, points), normals @ R.T, frames, range(5, 15), config=config)
+    expected = np.median(np.linalg.norm(transform_points(T_moved_map, centres) - centres, axis=1))
+    assert abs(moved["camera_offset_m"] - expected) < 0.01 and abs(moved["rotation_deg"] - 1.5) < 0.4
 
 
 @pytest.fixture(scope="session")
@@ -78,6 +101,8 @@ def test_cli_site_fuse_with_labels(rendered_labelled, tmp_path: Path, capsys) ->
     assert report["site_id"] == "fused0470"
     # the fused frames themselves (random views of a room, no held-out frame sees the same parts) lie on the map
     assert report["check"]["frames"] == 8 and report["check"]["median_m"] < 0.02
+    # rendered poses are exact: they agree with the map they fused
+    assert report["check"]["pose_offset"]["camera_offset_m"] < 0.01
     site = Site.load(tmp_path / "site")
     assert site.site_id == "fused0470" and len(site.map.points) > 10_000
     classes = {n.cls for n in site.graph.nodes}

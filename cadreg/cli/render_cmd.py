@@ -215,7 +215,8 @@ def register_site_fuse(site_sub: argparse._SubParsersAction) -> None:
     f.add_argument("--depth-max-m", type=float, help="depth beyond this is not fused")
     f.add_argument("--check-range", metavar="A:B",
                    help="held-out frames to check the map with: median and p90 distance of their depth, at their "
-                        "poses, to the fused map (e.g. 250:500 when fusing 0:250)")
+                        "poses, to the fused map (e.g. 250:500 when fusing 0:250), and how far their recorded poses "
+                        "disagree with it (their fused surface registered onto the map: pose_offset)")
     f.add_argument("--auto-cad", action="store_true",
                    help="align the --cad-root library's CAD models to the labelled instances (frames need labels); "
                         "writes them to SITE/auto_cad.scan2cad.json")
@@ -246,7 +247,7 @@ def _site_fuse(args: argparse.Namespace) -> int:
 
     from ..config import AutoCadConfig, FuseConfig
     from ..io.frames import RecordedFrames
-    from ..site.fuse import fuse_site, map_accuracy
+    from ..site.fuse import fuse_site, map_accuracy, pose_offset
     from .site_cmd import write_auto_cad
 
     if args.auto_cad and args.cad_root is None:
@@ -281,6 +282,7 @@ def _site_fuse(args: argparse.Namespace) -> int:
         report["auto_cad"] = {"cad_nodes": sum(1 for n in site.graph.nodes if n.source == "cad"),
                               "file": str(path)}
     if check:
-        report["check"] = {"range": args.check_range, **map_accuracy(site.map.points, frames, check)}
+        report["check"] = {"range": args.check_range, **map_accuracy(site.map.points, frames, check),
+                           "pose_offset": pose_offset(site.map.points, site.map.normals, frames, check, config=config)}
     print(json.dumps(report))
     return 0

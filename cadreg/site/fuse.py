@@ -8,6 +8,8 @@ and each point takes the majority of the labels it sees where its depth agrees w
     fuse_site(frames, indices, *, site_id, config, build_config, progress, cad_root, auto_cad) -> Site (via
         site_from_labelled_points; with auto_cad, CAD models aligned to the voted-label instances)
     map_accuracy(map_points, frames, indices) -> distances of held-out frames' depth to the map
+    pose_offset(map_points, map_normals, frames, indices) -> how far the held-out frames' recorded poses disagree
+        with the map (their own fused surface registered onto it)
 """
 
 from __future__ import annotations
@@ -269,3 +271,34 @@ def map_accuracy(map_points: np.ndarray, frames: RecordedFrames, indices: Sequen
             "p90_m": float(np.percentile(d, 90)), "map_to_frames_median_m": float(np.median(d_back)),
             "overlap_fraction": float(len(near) / max(len(d), 1)),
             "overlap_median_m": float(np.median(near)) if len(near) else float("nan")}
+
+
+def pose_offset(map_points: np.ndarray, map_normals: np.ndarray, frames: RecordedFrames, indices: Sequence[int], *,
+                config: FuseConfig = FuseConfig(), voxel_m: float = 0.02,
+                correspondences_m: tuple[float, ...] = (0.08, 0.04, 0.02)) -> dict[str, float]:
+    """How far the recorded poses of held-out frames disagree with a map: the frames are fused at their poses and
+    their surface is registered onto the map by point-to-plane ICP from where they put it (wide then narrow
+    correspondences). A localizer that is right against the map is off from such frames' recorded poses by this
+    much: a dataset's poses (7-Scenes' come from KinectFusion) drift between parts of a sequence.
+
+    map_points, map_normals : (n, 3) float, map frame. Returns `camera_offset_m` (median over the frames of how
+    far the correction moves their camera centres), `max_camera_offset_m`, `rotation_deg` (of the correction),
+    and the ICP's `fitness` and `rmse_m`. Raises ConfigError when the frames fuse to nothing.
+    """
+    cloud = fuse_frames(frames, indices, config=config)
+    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud.points.astype(np.float64)))
+    source = source.voxel_down_sample(voxel_m)
+    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(map_points, dtype=np.float64)))
+    target.normals = o3d.utility.Vector3dVector(np.asarray(map_normals, dtype=np.float64))
+    reg = o3d.pipelines.registration
+    T = np.eye(4)
+    for corr in correspondences_m:
+        res = reg.registration_icp(source, target, corr, T, reg.TransformationEstimationPointToPlane(),
+                                   reg.ICPConvergenceCriteria(max_iteration=50))
+        T = np.asarray(res.transformation)
+    centres = np.array([frames.pose(i)[:3, 3] for i in indices if frames.pose(i) is not None])
+    moved = np.linalg.norm(transform_points(T, centres) - centres, axis=1)
+    cos = np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return {"frames": len(centres), "camera_offset_m": float(np.median(moved)),
+            "max_camera_offset_m": float(moved.max()), "rotation_deg": float(np.degrees(np.arccos(cos))),
+            "fitness": float(res.fitness), "rmse_m": float(res.inlier_rmse)}
