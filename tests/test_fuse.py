@@ -17,7 +17,7 @@ from cadreg.geometry import make_T, transform_points
 from cadreg.io.frames import FramesWriter, RecordedFrames
 from cadreg.render import LabelledMesh, render_frames
 from cadreg.site.bundle import Site
-from cadreg.site.fuse import color_in_depth_camera, fuse_frames, map_accuracy, pose_offset
+from cadreg.site.fuse import color_in_depth_camera, fuse_frames, map_accuracy, pose_offset, pose_offset_by_window
 
 
 def median_distance_to_map(map_points: np.ndarray, frames: RecordedFrames, indices) -> float:
@@ -63,6 +63,16 @@ def test_pose_offset_measures_how_far_recorded_poses_disagree_with_the_map(redki
     moved = pose_offset(transform_points(T_moved_map, points), normals @ R.T, frames, range(5, 15), config=config)
     expected = np.median(np.linalg.norm(transform_points(T_moved_map, centres) - centres, axis=1))
     assert abs(moved["camera_offset_m"] - expected) < 0.01 and abs(moved["rotation_deg"] - 1.5) < 0.4
+    # Window by window: every checked frame of the moved map is placed more than 3 cm from its record, none of the
+    # map's own.
+    windows = pose_offset_by_window(transform_points(T_moved_map, points), normals @ R.T, frames, range(5, 15), 5,
+                                    config=config, offset_limit_m=0.03)
+    assert [(w["first"], w["last"]) for w in windows["windows"]] == [(5, 9), (10, 14)]
+    assert windows["frames_checked"] == 10 and windows["frames_over_limit"] == 10
+    same = pose_offset_by_window(points, normals, frames, range(5, 15), 5, config=config, offset_limit_m=0.03)
+    assert same["frames_checked"] == 10 and same["frames_over_limit"] == 0
+    with pytest.raises(ConfigError):
+        pose_offset_by_window(points, normals, frames, range(5, 15), 0, config=config)
 
 
 @pytest.fixture(scope="session")
@@ -96,13 +106,17 @@ def test_fused_labels_match_the_mesh(rendered_labelled) -> None:
 def test_cli_site_fuse_with_labels(rendered_labelled, tmp_path: Path, capsys) -> None:
     out, _ = rendered_labelled
     assert main(["site", "fuse", "--frames", str(out), "--range", "0:8", "--out", str(tmp_path / "site"),
-                 "--voxel-m", "0.02", "--site-id", "fused0470", "--check-range", "0:8"]) == 0
+                 "--voxel-m", "0.02", "--site-id", "fused0470", "--check-range", "0:8", "--check-window", "4"]) == 0
     report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert report["site_id"] == "fused0470"
     # the fused frames themselves (random views of a room, no held-out frame sees the same parts) lie on the map
     assert report["check"]["frames"] == 8 and report["check"]["median_m"] < 0.02
     # rendered poses are exact: they agree with the map they fused
     assert report["check"]["pose_offset"]["camera_offset_m"] < 0.01
+    # four random views of a room see little of it twice: such a window fuses to nothing and checks no frame
+    windows = report["check"]["pose_offset_windows"]
+    assert len(windows["windows"]) == 2 and windows["frames_over_limit"] == 0
+    assert all(w["fitness"] == 0.0 or w["camera_offset_m"] < 0.01 for w in windows["windows"])
     site = Site.load(tmp_path / "site")
     assert site.site_id == "fused0470" and len(site.map.points) > 10_000
     classes = {n.cls for n in site.graph.nodes}

@@ -217,6 +217,9 @@ def register_site_fuse(site_sub: argparse._SubParsersAction) -> None:
                    help="held-out frames to check the map with: median and p90 distance of their depth, at their "
                         "poses, to the fused map (e.g. 250:500 when fusing 0:250), and how far their recorded poses "
                         "disagree with it (their fused surface registered onto the map: pose_offset)")
+    f.add_argument("--check-window", type=int, metavar="N",
+                   help="with --check-range: pose_offset of each N consecutive held-out frames as well, and how many "
+                        "frames' recorded poses lie more than 5 cm from where the map puts them (pose_offset_windows)")
     f.add_argument("--auto-cad", action="store_true",
                    help="align the --cad-root library's CAD models to the labelled instances (frames need labels); "
                         "writes them to SITE/auto_cad.scan2cad.json")
@@ -247,7 +250,7 @@ def _site_fuse(args: argparse.Namespace) -> int:
 
     from ..config import AutoCadConfig, FuseConfig
     from ..io.frames import RecordedFrames
-    from ..site.fuse import fuse_site, map_accuracy, pose_offset
+    from ..site.fuse import fuse_site, map_accuracy, pose_offset, pose_offset_by_window
     from .site_cmd import write_auto_cad
 
     if args.auto_cad and args.cad_root is None:
@@ -257,6 +260,8 @@ def _site_fuse(args: argparse.Namespace) -> int:
         raise ConfigError(f"--auto-cad needs labelled frames: {frames.root} has no label images")
     indices = parse_range(args.frame_range, frames.indices)
     check = parse_range(args.check_range, frames.indices) if args.check_range else []
+    if args.check_window is not None and not check:
+        raise ConfigError("--check-window needs --check-range")
     overrides = {}
     if args.voxel_m is not None:
         overrides["voxel_size_m"] = args.voxel_m
@@ -284,5 +289,8 @@ def _site_fuse(args: argparse.Namespace) -> int:
     if check:
         report["check"] = {"range": args.check_range, **map_accuracy(site.map.points, frames, check),
                            "pose_offset": pose_offset(site.map.points, site.map.normals, frames, check, config=config)}
+        if args.check_window is not None:
+            report["check"]["pose_offset_windows"] = pose_offset_by_window(
+                site.map.points, site.map.normals, frames, check, args.check_window, config=config)
     print(json.dumps(report))
     return 0

@@ -10,6 +10,8 @@ and each point takes the majority of the labels it sees where its depth agrees w
     map_accuracy(map_points, frames, indices) -> distances of held-out frames' depth to the map
     pose_offset(map_points, map_normals, frames, indices) -> how far the held-out frames' recorded poses disagree
         with the map (their own fused surface registered onto it)
+    pose_offset_by_window(map_points, map_normals, frames, indices, window) -> the same along a sequence, a window
+        of frames at a time: which frames' recorded poses a localizer right against the map cannot match
 """
 
 from __future__ import annotations
@@ -285,11 +287,59 @@ def pose_offset(map_points: np.ndarray, map_normals: np.ndarray, frames: Recorde
     far the correction moves their camera centres), `max_camera_offset_m`, `rotation_deg` (of the correction),
     and the ICP's `fitness` and `rmse_m`. Raises ConfigError when the frames fuse to nothing.
     """
+    target = _map_cloud(map_points, map_normals)
+    return _offset_onto(target, frames, list(indices), config=config, voxel_m=voxel_m,
+                        correspondences_m=correspondences_m)
+
+
+def pose_offset_by_window(map_points: np.ndarray, map_normals: np.ndarray, frames: RecordedFrames,
+                          indices: Sequence[int], window: int, *, config: FuseConfig = FuseConfig(),
+                          voxel_m: float = 0.02, min_fitness: float = 0.5,
+                          offset_limit_m: float = 0.05) -> dict[str, object]:
+    """`pose_offset` of each run of `window` consecutive frames of `indices`: where along a sequence its recorded
+    poses drift from the map. A window whose surface lies less than `min_fitness` on the map (it looks past the
+    map) says little and is counted apart.
+
+    Returns `windows` (each with `first`, `last` and pose_offset's keys; only `frames` and a `fitness` of 0 for
+    one that fuses to nothing), `frames_checked` (frames of windows
+    that reach min_fitness) and `frames_over_limit` (those of them whose camera the correction moves by more than
+    `offset_limit_m`: frames a localizer right against the map places more than that far from their record).
+    """
+    if window < 1:
+        raise ConfigError(f"window must be at least 1 frame, got {window}")
+    indices = list(indices)
+    target = _map_cloud(map_points, map_normals)
+    windows, checked, over = [], 0, 0
+    for start in range(0, len(indices), window):
+        part = indices[start:start + window]
+        try:
+            offset = _offset_onto(target, frames, part, config=config, voxel_m=voxel_m, per_frame=True)
+        except ConfigError:
+            # Frames that see no surface twice (too few, or too far apart) fuse to nothing: nothing to check.
+            windows.append({"first": part[0], "last": part[-1], "frames": len(part), "fitness": 0.0})
+            continue
+        moved = offset.pop("per_frame_m")
+        windows.append({"first": part[0], "last": part[-1], **offset})
+        if offset["fitness"] >= min_fitness:
+            checked += len(moved)
+            over += int(np.sum(np.asarray(moved) > offset_limit_m))
+    return {"window": window, "min_fitness": min_fitness, "offset_limit_m": offset_limit_m,
+            "frames_checked": checked, "frames_over_limit": over, "windows": windows}
+
+
+def _map_cloud(map_points: np.ndarray, map_normals: np.ndarray) -> o3d.geometry.PointCloud:
+    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(map_points, dtype=np.float64)))
+    target.normals = o3d.utility.Vector3dVector(np.asarray(map_normals, dtype=np.float64))
+    return target
+
+
+def _offset_onto(target: o3d.geometry.PointCloud, frames: RecordedFrames, indices: list[int], *, config: FuseConfig,
+                 voxel_m: float, correspondences_m: tuple[float, ...] = (0.08, 0.04, 0.02),
+                 per_frame: bool = False) -> dict:
+    """The frames fused at their recorded poses, registered onto `target` from there: how far that moves them."""
     cloud = fuse_frames(frames, indices, config=config)
     source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud.points.astype(np.float64)))
     source = source.voxel_down_sample(voxel_m)
-    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(map_points, dtype=np.float64)))
-    target.normals = o3d.utility.Vector3dVector(np.asarray(map_normals, dtype=np.float64))
     reg = o3d.pipelines.registration
     T = np.eye(4)
     for corr in correspondences_m:
@@ -299,6 +349,9 @@ def pose_offset(map_points: np.ndarray, map_normals: np.ndarray, frames: Recorde
     centres = np.array([frames.pose(i)[:3, 3] for i in indices if frames.pose(i) is not None])
     moved = np.linalg.norm(transform_points(T, centres) - centres, axis=1)
     cos = np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return {"frames": len(centres), "camera_offset_m": float(np.median(moved)),
-            "max_camera_offset_m": float(moved.max()), "rotation_deg": float(np.degrees(np.arccos(cos))),
-            "fitness": float(res.fitness), "rmse_m": float(res.inlier_rmse)}
+    out = {"frames": len(centres), "camera_offset_m": float(np.median(moved)),
+           "max_camera_offset_m": float(moved.max()), "rotation_deg": float(np.degrees(np.arccos(cos))),
+           "fitness": float(res.fitness), "rmse_m": float(res.inlier_rmse)}
+    if per_frame:
+        out["per_frame_m"] = moved.tolist()
+    return out
