@@ -100,3 +100,25 @@ def test_free_space_check_tells_the_true_pose_from_a_shifted_one(kitchen) -> Non
     ahead = T_true.copy()
     ahead[:3, 3] += 0.4 * T_true[:3, 2]  # 40 cm ahead: the map now stands in front of what the frame measured
     assert at_truth < 0.05 and loc.view_check.see_through(ahead, zbuf, frame.depth_intrinsics) > 0.3
+
+
+@pytest.mark.realdata
+def test_depth_agreement_renders_and_compares_and_leaves_out_what_the_map_lacks(kitchen) -> None:
+    from cadreg.localize.points import frame_to_points, voxel_downsample
+    from cadreg.localize.score import ViewCheck
+
+    loc, frames = kitchen
+    frame, T_true = frames.load(97)
+    K = frame.depth_intrinsics
+    zbuf = ViewCheck.zbuffer(voxel_downsample(frame_to_points(frame), 0.03).xyz, K)
+    at_truth = loc.view_check.depth_agreement(T_true, zbuf, K)
+    behind = T_true.copy()
+    behind[:3, 3] -= 0.4 * T_true[:3, 2]  # 40 cm back: the map's surfaces lie farther than the frame measured
+    assert at_truth > 0.85 and loc.view_check.depth_agreement(behind, zbuf, K) < 0.3
+    # A map holding only what lies right of the camera's axis: the frame's left half looks past it, which says
+    # nothing either way (the fitness would halve).
+    xyz = loc.view_check.map_xyz
+    right = ViewCheck(xyz[((xyz - T_true[:3, 3]) @ T_true[:3, :3])[:, 0] > 0])
+    assert right.depth_agreement(T_true, zbuf, K) > 0.85
+    # Too few cells shared with the map: nothing to judge by
+    assert ViewCheck(xyz[:10]).depth_agreement(T_true, zbuf, K) == 1.0

@@ -58,6 +58,15 @@ def test_a_pose_the_geometry_lets_slide_is_uncertain() -> None:
     assert answer_status(0.9, 0.0, True, 0.0, 0.8, **rules, pose_std=0.013, max_pose_std=0.004) == Status.UNCERTAIN
 
 
+def test_a_pose_whose_depth_disagrees_with_the_map_is_uncertain() -> None:
+    rules = dict(min_fitness=0.5, ambiguity_margin=0.03, max_see_through=0.1, min_ok_confidence=0.5,
+                 min_depth_agreement=0.6)
+    assert answer_status(0.9, 0.5, False, 0.0, 0.8, **rules, depth_agreement=0.42) == Status.UNCERTAIN
+    assert answer_status(0.9, 0.0, True, 0.0, 0.8, **rules, depth_agreement=0.42) == Status.UNCERTAIN  # rival or not
+    assert answer_status(0.9, 0.5, False, 0.0, 0.8, **rules, depth_agreement=0.9) == Status.OK
+    assert answer_status(0.3, 0.5, False, 0.0, 0.8, **rules, depth_agreement=0.42) == Status.LOW_OVERLAP
+
+
 def test_stage_timer_adds_up_and_reports_progress() -> None:
     stage_ms: dict[str, float] = {}
     calls: list[tuple[int, int]] = []

@@ -485,7 +485,9 @@ class Localizer:
         _, out, winner, see = refined[0]
         fitness, rmse = self.maps_at(out.T_map_camera, center_camera).refine_map.fitness(
             transform_points(out.T_map_camera, scan.check_xyz), inlier_m=rc.inlier_m)
-        return Choice(winner, out, margin, has_rival, fitness, rmse, center_camera, roi_frame_points, see)
+        agreement = 1.0 if scan.zbuf is None else self.maps_at(out.T_map_camera, center_camera).view_check.depth_agreement(
+            out.T_map_camera, scan.zbuf, scan.K)
+        return Choice(winner, out, margin, has_rival, fitness, rmse, center_camera, roi_frame_points, see, agreement)
 
     def _rival_margin(self, scores: list[float], poses: list[np.ndarray]) -> tuple[bool, float]:
         """(has a distinct rival, margin) of poses sorted best first (refined contenders, or the candidates when
@@ -551,9 +553,11 @@ class Localizer:
         status = answer_status(choice.fitness, choice.margin, choice.has_rival, choice.see_through, trust,
                                min_fitness=rc.min_fitness, ambiguity_margin=mc.ambiguity_margin,
                                max_see_through=mc.max_see_through, min_ok_confidence=mc.min_ok_confidence,
-                               pose_std=slide, max_pose_std=mc.max_pose_std_m)
+                               pose_std=slide, max_pose_std=mc.max_pose_std_m,
+                               depth_agreement=choice.depth_agreement, min_depth_agreement=mc.min_depth_agreement)
         diag.notes.append(f"trust: fitness {choice.fitness:.3f}, rmse {100 * choice.rmse_m:.2f} cm, margin "
-                          f"{choice.margin:.3f}, see-through {choice.see_through:.3f}, pose std {100 * std:.2f} cm")
+                          f"{choice.margin:.3f}, see-through {choice.see_through:.3f}, pose std {100 * std:.2f} cm, "
+                          f"depth agreement {choice.depth_agreement:.3f}")
         if status == Status.LOW_OVERLAP:
             diag.notes.append(f"fitness {choice.fitness:.2f} below {rc.min_fitness}")
             return LocalizationResult(Status.LOW_OVERLAP, None, confidence=low_overlap_confidence(choice.fitness),
@@ -567,7 +571,7 @@ class Localizer:
         if status == Status.UNCERTAIN:
             # Weak support: the refined pose goes first among the hypotheses, but it is not claimed.
             diag.notes.append(f"uncertain: confidence {trust:.2f}, see-through {choice.see_through:.2f}, "
-                              f"pose std {100 * std:.2f} cm")
+                              f"pose std {100 * std:.2f} cm, depth agreement {choice.depth_agreement:.2f}")
             best = replace(winner.hypothesis, T_map_camera=T)
             return LocalizationResult(Status.UNCERTAIN, None, confidence=trust, hypotheses=[best] + hypotheses[:top_k - 1],
                                       diagnostics=diag, frame_id=frame_id)

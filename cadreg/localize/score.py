@@ -191,6 +191,33 @@ class ViewCheck:
         v = ((K.fy * p[:, 1] / p[:, 2] + K.cy) // cell_px).astype(np.int64)
         return v, u, (u >= 0) & (u < cols) & (v >= 0) & (v < rows)
 
+    def depth_agreement(self, T_map_camera: np.ndarray, zbuf: np.ndarray, K, *, cell_px: int = 8, pool: int = 2,
+                        tolerance_m: float = 0.05, tolerance_ratio: float = 0.02, max_depth_m: float = 4.0,
+                        min_cells: int = 20) -> float:
+        """Share of the view's cells holding both measured depth and map surface in which the two agree (the
+        nearest of each within tolerance_m + tolerance_ratio · depth): render and compare, on cells of
+        cell_px · pool pixels (a map sample leaves finer cells empty or holding only a surface behind another).
+
+        At the right pose the frame's depth is the map's, except where something the map lacks stands in front.
+        A wrong pose can still put most frame points near some surface (the fitness: a floor and a wall fit anywhere
+        along them, a counter fits a table), but along the rays the map's surfaces lie elsewhere. Cells the map has
+        nothing in (the frame looks past the map) say nothing either way and are left out, so partial overlap costs
+        nothing here. 1.0 when fewer than min_cells cells hold both.
+        """
+        R, t = T_map_camera[:3, :3], T_map_camera[:3, 3]
+        p = (self.map_xyz - t) @ R  # map -> camera
+        p = p[(p[:, 2] > 0.2) & (p[:, 2] < max_depth_m)]
+        measured = _min_pool(zbuf, pool)
+        v, u, inside = self._cells(p, K, cell_px * pool, measured.shape)
+        mapped = np.full(measured.size, np.inf)
+        np.minimum.at(mapped, v[inside] * measured.shape[1] + u[inside], p[inside, 2])
+        measured = measured.ravel()
+        both = np.isfinite(measured) & np.isfinite(mapped)
+        if both.sum() < min_cells:
+            return 1.0
+        z = measured[both]
+        return float(np.mean(np.abs(z - mapped[both]) < tolerance_m + tolerance_ratio * z))
+
     def see_through(self, T_map_camera: np.ndarray, zbuf: np.ndarray, K, *, cell_px: int = 8, margin_m: float = 0.1,
                     margin_ratio: float = 0.04, max_depth_m: float = 4.0, min_points: int = 50) -> float:
         """Share of the map points in view (in cells where the frame measured depth, not farther than
@@ -208,3 +235,11 @@ class ViewCheck:
             return 0.0
         front = zi[seen] < measured[seen] - (margin_m + margin_ratio * measured[seen])
         return float(front.mean())
+
+
+def _min_pool(grid: np.ndarray, k: int) -> np.ndarray:
+    """(rows, cols) -> (ceil(rows/k), ceil(cols/k)): the minimum of each k × k block (inf pads the edges)."""
+    rows, cols = grid.shape
+    padded = np.full((-(-rows // k) * k, -(-cols // k) * k), np.inf)
+    padded[:rows, :cols] = grid
+    return padded.reshape(padded.shape[0] // k, k, padded.shape[1] // k, k).min(axis=(1, 3))

@@ -94,7 +94,9 @@ class Choice:
     has_rival : a distinct rival exists. fitness, rmse_m : share of `Scan.check_xyz` within the inlier distance
         of the map at the refined pose, and their RMSE in metres.
     center_camera : (3,) centre of the frame's points, colour-camera frame; roi_frame_points : frame points kept
-        inside the region of interest.
+        inside the region of interest. see_through : share of the map in view the frame sees through at the pose;
+        depth_agreement : share of the view's cells, among those holding both, where measured depth and map agree
+        (`score.ViewCheck.depth_agreement`; 1.0 without a z-buffer).
     """
 
     candidate: Candidate
@@ -106,6 +108,7 @@ class Choice:
     center_camera: np.ndarray
     roi_frame_points: int
     see_through: float = 0.0
+    depth_agreement: float = 1.0
 
 
 class StageTimer:
@@ -162,15 +165,20 @@ def low_overlap_confidence(fitness: float) -> float:
 
 def answer_status(fitness: float, margin: float, has_rival: bool, see_through: float, trust: float, *,
                   min_fitness: float, ambiguity_margin: float, max_see_through: float,
-                  min_ok_confidence: float, pose_std: float = 0.0, max_pose_std: float = np.inf) -> Status:
+                  min_ok_confidence: float, pose_std: float = 0.0, max_pose_std: float = np.inf,
+                  depth_agreement: float = 1.0, min_depth_agreement: float = 0.0) -> Status:
     """The status of a refined pose: `low_overlap` when too little of the frame lies on the map; `uncertain` when
-    the frame sees through more than max_see_through of the map in view, or when the pose may slide by more than
-    max_pose_std (close rival or not); `ambiguous` when a distinct rival scored within the ambiguity margin;
-    `uncertain` when the confidence is below min_ok_confidence; else `ok`. Only `ok` claims the pose is right."""
+    the frame sees through more than max_see_through of the map in view, when its depth agrees with the map's
+    surfaces in less than min_depth_agreement of the view it shares with the map, or when the pose may slide by
+    more than max_pose_std (close rival or not); `ambiguous` when a distinct rival scored within the ambiguity
+    margin; `uncertain` when the confidence is below min_ok_confidence; else `ok`. Only `ok` claims the pose is
+    right."""
     if fitness < min_fitness:
         return Status.LOW_OVERLAP
     if see_through > max_see_through:
         return Status.UNCERTAIN  # whatever its rivals: the frame contradicts the map at this pose
+    if depth_agreement < min_depth_agreement:
+        return Status.UNCERTAIN  # whatever its rivals: along the rays, the map's surfaces lie elsewhere
     if pose_std > max_pose_std:
         return Status.UNCERTAIN  # whatever its rivals: the frame's geometry does not pin the pose
     if has_rival and margin < ambiguity_margin:
