@@ -132,22 +132,33 @@ def test_a_session_runs_one_global_search_at_a_time(server, recorded: RecordedFr
         encoded = [replace(enc, meta=enc.meta.model_copy(update={"stamp_s": k / 30.0}))
                    for k, enc in enumerate(client.encode((recorded, FIRST + 40 + k)) for k in range(3))]
 
-    def send(k: int) -> dict:
+    def send(k: int, session: str) -> dict:
         with Client(server.url, read_timeout_s=120.0) as client:
-            return client.localize(SITE_ID, encoded[k], session_id="one-search")
+            return client.localize(SITE_ID, encoded[k], session_id=session)
 
-    with concurrent.futures.ThreadPoolExecutor(2) as pool:
-        first = pool.submit(send, 0)
-        # the second goes once the first holds the search lease (a global search takes ~100 ms or more); a fixed
-        # sleep lost that race on a loaded machine
-        deadline = time.monotonic() + 30.0
-        while server.service.sessions.leases() == 0 and not first.done() and time.monotonic() < deadline:
-            time.sleep(0.002)
-        second = pool.submit(send, 1)
-        a, b = first.result(), second.result()
-    assert a["diagnostics"]["mode"] == "global" and a["status"] == "ok", a["diagnostics"]["notes"]
-    assert b["status"] == "no_match" and b["T_map_camera"] is None
+    # The second frame goes once the first holds the search lease (a global search takes ~100 ms or more; a fixed
+    # sleep lost that race on a loaded machine). On a busy machine the first can still end before the second
+    # reaches the service, which then tracks from it: a fresh session tries again (never a second search).
+    refused = None
+    for attempt in range(5):
+        session = f"one-search-{attempt}"
+        with concurrent.futures.ThreadPoolExecutor(2) as pool:
+            first = pool.submit(send, 0, session)
+            deadline = time.monotonic() + 30.0
+            while server.service.sessions.leases() == 0 and not first.done() and time.monotonic() < deadline:
+                time.sleep(0.002)
+            second = pool.submit(send, 1, session)
+            a, b = first.result(), second.result()
+        assert a["diagnostics"]["mode"] == "global" and a["status"] == "ok", a["diagnostics"]["notes"]
+        if b["status"] == "no_match":
+            refused = (b, session)
+            break
+        # never a second search: it came after the first and tracked from it
+        assert b["diagnostics"]["mode"] == "tracked", b["diagnostics"]["notes"]
+    assert refused is not None, "the second frame never reached the service while the first was searched"
+    b, session = refused
+    assert b["T_map_camera"] is None
     assert any("another frame of this session is being searched" in n for n in b["diagnostics"]["notes"])
-    c = send(2)
+    c = send(2, session)
     assert c["diagnostics"]["mode"] == "tracked" and c["status"] == "ok", c["diagnostics"]["notes"]
     assert server.service.sessions.leases() == 0

@@ -11,6 +11,7 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 
 from ..site.bundle import FieldGrid
+from .points import voxel_indices
 
 # A stored field holds distances in steps of truncate_m / QUANT_MAX, one byte a cell.
 QUANT_MAX = 255
@@ -162,14 +163,29 @@ class ViewCheck:
     still put half its points on some surface). Written here: no library has it in this form; numpy does the
     projection.
 
-    map_xyz : (n, 3) map points (a sample: the cost is linear in it). cell_px : pixels per z-buffer cell.
+    map_xyz : (n, 3) map points; the see-through check draws on a random sample of them (its cost is linear in
+    it), render and compare (`depth_agreement`) on one point per `surface_voxel_m` voxel: the map's nearest surface
+    in a cell must be there to compare with, and a fixed sample of a building's region (a room and the 3 m halo of
+    its neighbours) left most cells of a right pose holding only a surface behind it (agreement 0.54-0.81 where
+    every point of a 2 cm grid gave 0.89-1.0). cell_px : pixels per z-buffer cell.
     """
 
-    def __init__(self, map_xyz: np.ndarray, *, sample: int = 30000, seed: int = 0) -> None:
+    def __init__(self, map_xyz: np.ndarray, *, sample: int = 30000, seed: int = 0,
+                 surface_voxel_m: float = 0.02) -> None:
         xyz = np.asarray(map_xyz, dtype=np.float64)
+        self._all_xyz, self._surface_voxel_m = xyz, surface_voxel_m
+        self._surface_xyz: np.ndarray | None = None
         if len(xyz) > sample:
             xyz = xyz[np.random.default_rng(seed).choice(len(xyz), sample, replace=False)]
         self.map_xyz = xyz
+
+    @property
+    def surface_xyz(self) -> np.ndarray:
+        """One map point per surface_voxel_m voxel, made on first use: a building builds the view checks of many
+        regions a frame and compares depth in one (30-40 ms for a region's 200 k points)."""
+        if self._surface_xyz is None:
+            self._surface_xyz = self._all_xyz[voxel_indices(self._all_xyz, self._surface_voxel_m)]
+        return self._surface_xyz
 
     @staticmethod
     def zbuffer(xyz_camera: np.ndarray, K, *, cell_px: int = 8) -> np.ndarray:
@@ -205,7 +221,7 @@ class ViewCheck:
         nothing here. 1.0 when fewer than min_cells cells hold both.
         """
         R, t = T_map_camera[:3, :3], T_map_camera[:3, 3]
-        p = (self.map_xyz - t) @ R  # map -> camera
+        p = (self.surface_xyz - t) @ R  # map -> camera
         p = p[(p[:, 2] > 0.2) & (p[:, 2] < max_depth_m)]
         measured = _min_pool(zbuf, pool)
         v, u, inside = self._cells(p, K, cell_px * pool, measured.shape)
