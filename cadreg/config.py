@@ -228,6 +228,9 @@ class FallbackConfig(_Section):
     yaw_step_deg: float = Field(10.0, gt=0, le=90, description="yaw step of `fallback.floor_grid_search`")
     min_graph_fitness: float = Field(0.9, ge=0, le=1, description="below this coarse fitness the graph's best is "
                                      "checked against the fallback too")
+    skip_agreement: float = Field(0.95, ge=0, le=1.01, description="... unless its depth agrees with the map's "
+                                  "surfaces in at least this share of the view (`ViewCheck.depth_agreement`); above "
+                                  "1 the fallbacks always run below min_graph_fitness")
     max_up_disagreement_deg: float = Field(25.0, gt=0, le=180, description="an FPFH + RANSAC pose that tilts the "
                                            "frame's up direction further than this from the map's is refused")
 

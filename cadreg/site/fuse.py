@@ -301,9 +301,9 @@ def pose_offset_by_window(map_points: np.ndarray, map_normals: np.ndarray, frame
     map) says little and is counted apart.
 
     Returns `windows` (each with `first`, `last` and pose_offset's keys; only `frames` and a `fitness` of 0 for
-    one that fuses to nothing), `frames_checked` (frames of windows
-    that reach min_fitness) and `frames_over_limit` (those of them whose camera the correction moves by more than
-    `offset_limit_m`: frames a localizer right against the map places more than that far from their record).
+    one that fuses to nothing), `frames_checked` (frames of windows that reach min_fitness) and
+    `frames_over_limit` (those of them whose camera the correction moves by more than `offset_limit_m`: frames a
+    localizer right against the map places more than that far from their record).
     """
     if window < 1:
         raise ConfigError(f"window must be at least 1 frame, got {window}")
