@@ -122,3 +122,4 @@ def test_depth_agreement_renders_and_compares_and_leaves_out_what_the_map_lacks(
     assert right.depth_agreement(T_true, zbuf, K) > 0.85
     # Too few cells shared with the map: nothing to judge by
     assert ViewCheck(xyz[:10]).depth_agreement(T_true, zbuf, K) == 1.0
+    assert ViewCheck(xyz[:10]).depth_agreement(T_true, zbuf, K, unseen=0.0) == 0.0  # where agreement must be shown

@@ -403,17 +403,21 @@ class Localizer:
         return sorted(candidates, key=lambda c: -c.score)
 
     def _best_agrees_along_rays(self, candidates: list[Candidate], scan: Scan, diag: Diagnostics) -> bool:
-        """The best candidate's coarse pose, weak by its score, renders as the frame measured it (depth agreement
-        of at least FallbackConfig.skip_agreement): then the fallbacks are not run. Its score is what the fitness
-        makes it, and furniture the map's CAD models stand in for is not the real thing (the demo's frame 6 puts
-        a fifth of its points more than 5 cm from the map at a pose 1.1 cm off, score 0.79, and its depth agrees
-        with the map in 96 % of the view: the label-free search then spent 95 ms to find nothing better)."""
+        """The best candidate is the graph's, and its coarse pose, weak by its score, renders as the frame measured
+        it (depth agreement of at least FallbackConfig.skip_agreement): then the fallbacks are not run. Its score
+        is what the fitness makes it, and furniture the map's CAD models stand in for is not the real thing (the
+        demo's frame 6 puts a fifth of its points more than 5 cm from the map at a pose 1.1 cm off, score 0.79,
+        and its depth agrees with the map in 96 % of the view: the label-free search then spent 95 ms to find
+        nothing better)."""
         skip = self.config.fallback.skip_agreement
         if not candidates or scan.zbuf is None or skip > 1.0:
             return False
         best = max(candidates, key=lambda c: c.score)
+        if best.hypothesis.source != "graph":
+            return False  # a client's prior (a tracked prediction) is checked, never the reason to search less
         T = best.T_map_camera
-        agreement = self.maps_at(T, scan.center_camera).view_check.depth_agreement(T, scan.zbuf, scan.K)
+        # A pose from which the map is out of sight shows no agreement at all (unseen=0).
+        agreement = self.maps_at(T, scan.center_camera).view_check.depth_agreement(T, scan.zbuf, scan.K, unseen=0.0)
         if agreement < skip:
             return False
         diag.notes.append(f"fallbacks not run: the best coarse pose (score {best.score:.2f}) agrees with the map's "

@@ -209,7 +209,7 @@ class ViewCheck:
 
     def depth_agreement(self, T_map_camera: np.ndarray, zbuf: np.ndarray, K, *, cell_px: int = 8, pool: int = 2,
                         tolerance_m: float = 0.05, tolerance_ratio: float = 0.02, max_depth_m: float = 4.0,
-                        min_cells: int = 20) -> float:
+                        min_cells: int = 20, unseen: float = 1.0) -> float:
         """Share of the view's cells holding both measured depth and map surface in which the two agree (the
         nearest of each within tolerance_m + tolerance_ratio · depth): render and compare, on cells of
         cell_px · pool pixels (a map sample leaves finer cells empty or holding only a surface behind another).
@@ -218,7 +218,8 @@ class ViewCheck:
         A wrong pose can still put most frame points near some surface (the fitness: a floor and a wall fit anywhere
         along them, a counter fits a table), but along the rays the map's surfaces lie elsewhere. Cells the map has
         nothing in (the frame looks past the map) say nothing either way and are left out, so partial overlap costs
-        nothing here. 1.0 when fewer than min_cells cells hold both.
+        nothing here. `unseen` when fewer than min_cells cells hold both: 1.0 for a gate (no evidence against the
+        pose), 0.0 where agreement must be shown.
         """
         R, t = T_map_camera[:3, :3], T_map_camera[:3, 3]
         p = (self.surface_xyz - t) @ R  # map -> camera
@@ -230,7 +231,7 @@ class ViewCheck:
         measured = measured.ravel()
         both = np.isfinite(measured) & np.isfinite(mapped)
         if both.sum() < min_cells:
-            return 1.0
+            return unseen
         z = measured[both]
         return float(np.mean(np.abs(z - mapped[both]) < tolerance_m + tolerance_ratio * z))
 
