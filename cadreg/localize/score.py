@@ -224,11 +224,8 @@ class ViewCheck:
         R, t = T_map_camera[:3, :3], T_map_camera[:3, 3]
         p = (self.surface_xyz - t) @ R  # map -> camera
         p = p[(p[:, 2] > 0.2) & (p[:, 2] < max_depth_m)]
-        measured = _min_pool(zbuf, pool)
-        v, u, inside = self._cells(p, K, cell_px * pool, measured.shape)
-        mapped = np.full(measured.size, np.inf)
-        np.minimum.at(mapped, v[inside] * measured.shape[1] + u[inside], p[inside, 2])
-        measured = measured.ravel()
+        measured = _min_pool(zbuf, pool).ravel()
+        mapped = self.zbuffer(p, K, cell_px=cell_px * pool).ravel()  # the map's nearest surface per cell
         both = np.isfinite(measured) & np.isfinite(mapped)
         if both.sum() < min_cells:
             return unseen

@@ -27,7 +27,7 @@ from ..camera import CameraIntrinsics
 from ..config import AutoCadConfig, FuseConfig, SiteBuildConfig
 from ..errors import ConfigError
 from ..frame import Frame
-from ..geometry import invert_T, transform_points
+from ..geometry import invert_T, rotation_angle_deg, transform_points
 from ..io.frames import RecordedFrames
 
 Progress = Callable[[int, int], None]
@@ -346,11 +346,11 @@ def _offset_onto(target: o3d.geometry.PointCloud, frames: RecordedFrames, indice
         res = reg.registration_icp(source, target, corr, T, reg.TransformationEstimationPointToPlane(),
                                    reg.ICPConvergenceCriteria(max_iteration=50))
         T = np.asarray(res.transformation)
-    centres = np.array([frames.pose(i)[:3, 3] for i in indices if frames.pose(i) is not None])
+    poses = [frames.pose(i) for i in indices]  # each a file read
+    centres = np.array([T_map_camera[:3, 3] for T_map_camera in poses if T_map_camera is not None])
     moved = np.linalg.norm(transform_points(T, centres) - centres, axis=1)
-    cos = np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
     out = {"frames": len(centres), "camera_offset_m": float(np.median(moved)),
-           "max_camera_offset_m": float(moved.max()), "rotation_deg": float(np.degrees(np.arccos(cos))),
+           "max_camera_offset_m": float(moved.max()), "rotation_deg": rotation_angle_deg(T[:3, :3]),
            "fitness": float(res.fitness), "rmse_m": float(res.inlier_rmse)}
     if per_frame:
         out["per_frame_m"] = moved.tolist()
