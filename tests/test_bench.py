@@ -91,6 +91,27 @@ def test_bench_cli_on_real_renders(scene0470_site_dir, frames_dir, tmp_path, cap
     assert format_table(report).splitlines()[0].startswith("frames: 2")
 
 
+def test_bench_judges_by_a_given_truth(scene0470_site_dir, frames_dir, tmp_path) -> None:
+    """`--truth DIR`: where the map puts each frame, when a dataset's recorded poses drift from it. Frame 0's truth
+    here is its recorded pose moved by 8 cm; frames 1 and 2 have none there."""
+    from cadreg.io.frames import RecordedFrames, read_indexed_poses, write_indexed_poses
+
+    moved = RecordedFrames.open(frames_dir).pose(0).copy()
+    moved[:3, 3] += [0.08, 0.0, 0.0]
+    write_indexed_poses(tmp_path / "truth", {0: moved})
+    assert list(read_indexed_poses(tmp_path / "truth")) == [0]
+    out = tmp_path / "bench.json"
+    assert main(["bench", "--site", str(scene0470_site_dir), "--frames", str(frames_dir), "--method", "cadreg",
+                 "--truth", str(tmp_path / "truth"), "--json", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["frames"] == 1 and report["skipped"] == [1, 2]
+    # Placed where its recorded pose is: 8 cm from the given truth
+    s = report["methods"]["cadreg"]
+    assert s["success_5cm_5deg"] == 0.0 and abs(s["median_translation_m"] - 0.08) < 0.01
+    assert main(["bench", "--site", str(scene0470_site_dir), "--frames", str(frames_dir),
+                 "--truth", str(tmp_path / "missing")]) == 2
+
+
 def test_localize_cli_prints_json_and_draws(scene0470_site_dir, frames_dir, tmp_path, capsys) -> None:
     png = tmp_path / "loc.png"
     rc = main(["localize", "--site", str(scene0470_site_dir), "--frames", str(frames_dir), "--index", "0",

@@ -13,7 +13,7 @@ from cadreg.cli.main import main
 from cadreg.cli.render_cmd import parse_range
 from cadreg.config import FuseConfig, RenderConfig
 from cadreg.errors import ConfigError
-from cadreg.geometry import make_T, transform_points
+from cadreg.geometry import make_T, pose_errors, transform_points
 from cadreg.io.frames import FramesWriter, RecordedFrames
 from cadreg.render import LabelledMesh, render_frames
 from cadreg.site.bundle import Site
@@ -65,10 +65,16 @@ def test_pose_offset_measures_how_far_recorded_poses_disagree_with_the_map(redki
     assert abs(moved["camera_offset_m"] - expected) < 0.01 and abs(moved["rotation_deg"] - 1.5) < 0.4
     # Window by window: every checked frame of the moved map is placed more than 3 cm from its record, none of the
     # map's own.
+    corrected: dict[int, np.ndarray] = {}
     windows = pose_offset_by_window(transform_points(T_moved_map, points), normals @ R.T, frames, range(5, 15), 5,
-                                    config=config, offset_limit_m=0.03)
+                                    config=config, offset_limit_m=0.03, corrected=corrected)
     assert [(w["first"], w["last"]) for w in windows["windows"]] == [(5, 9), (10, 14)]
     assert windows["frames_checked"] == 10 and windows["frames_over_limit"] == 10
+    # Where the moved map puts each frame: its recorded pose, moved with the map.
+    assert sorted(corrected) == list(range(5, 15))
+    for i, T in corrected.items():
+        te, re_ = pose_errors(T, T_moved_map @ frames.pose(i))
+        assert te < 0.01 and re_ < 0.4
     same = pose_offset_by_window(points, normals, frames, range(5, 15), 5, config=config, offset_limit_m=0.03)
     assert same["frames_checked"] == 10 and same["frames_over_limit"] == 0
     with pytest.raises(ConfigError):
@@ -106,8 +112,15 @@ def test_fused_labels_match_the_mesh(rendered_labelled) -> None:
 def test_cli_site_fuse_with_labels(rendered_labelled, tmp_path: Path, capsys) -> None:
     out, _ = rendered_labelled
     assert main(["site", "fuse", "--frames", str(out), "--range", "0:8", "--out", str(tmp_path / "site"),
-                 "--voxel-m", "0.02", "--site-id", "fused0470", "--check-range", "0:8", "--check-window", "4"]) == 0
+                 "--voxel-m", "0.02", "--site-id", "fused0470", "--check-range", "0:8", "--check-window", "4",
+                 "--write-poses", str(tmp_path / "truth")]) == 0
     report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    # the poses where the map puts the frames of the windows that lie on it, one file each
+    written = report["check"]["poses_written"]
+    assert written["frames"] == report["check"]["pose_offset_windows"]["frames_checked"]
+    assert len(list((tmp_path / "truth").glob("*.txt"))) == written["frames"]
+    assert main(["site", "fuse", "--frames", str(out), "--out", str(tmp_path / "site2"),
+                 "--check-range", "0:8", "--write-poses", str(tmp_path / "truth")]) == 2  # needs --check-window
     assert report["site_id"] == "fused0470"
     # the fused frames themselves (random views of a room, no held-out frame sees the same parts) lie on the map
     assert report["check"]["frames"] == 8 and report["check"]["median_m"] < 0.02

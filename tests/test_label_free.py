@@ -3,6 +3,7 @@ labels, the free-space check, and the statuses that keep a weakly supported answ
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -77,6 +78,29 @@ def test_label_free_frames_are_placed_and_claimed(kitchen) -> None:
 
 
 @pytest.mark.realdata
+def test_a_frame_that_looks_partly_past_the_map_is_claimed_for_what_the_map_covers(kitchen) -> None:
+    loc, frames = kitchen
+    for i in (256, 482):  # a quarter and a third of the frame the map (frames 0-199) never saw
+        frame, T_true = frames.load(i)
+        r = loc.localize(replace(frame, labels=None))
+        assert r.status == Status.OK, r.diagnostics.notes
+        te, re_ = pose_errors(r.T_map_camera, T_true)
+        assert te <= 0.05 and re_ <= 5.0
+        trust = next(n for n in r.diagnostics.notes if n.startswith("trust:"))
+        ev = {k: float(v) for k, v in re.findall(r"(fitness|margin|see-through|map coverage) ([\d.]+)", trust)}
+        assert ev["fitness"] < 0.75 and ev["map coverage"] < 0.75
+
+        def trust_of(fraction: float) -> float:
+            return confidence(fraction, r.diagnostics.refinement.inlier_rmse_m, ev["margin"], inlier_m=RC.inlier_m,
+                              confident_margin=MC.confident_margin, see_through=ev["see-through"],
+                              max_see_through=MC.max_see_through)
+
+        # Held to the fitness itself this right answer was uncertain (0.44-0.47).
+        assert trust_of(ev["fitness"]) < MC.min_ok_confidence <= r.confidence
+        assert r.confidence == pytest.approx(trust_of(ev["fitness"] / ev["map coverage"]), abs=0.01)
+
+
+@pytest.mark.realdata
 def test_a_frame_of_a_place_the_map_lacks_is_not_ok(kitchen) -> None:
     loc, frames = kitchen
     frame, T_true = frames.load(400)  # sees a part of the kitchen that frames 0-199 did not
@@ -120,6 +144,13 @@ def test_depth_agreement_renders_and_compares_and_leaves_out_what_the_map_lacks(
     xyz = loc.view_check.map_xyz
     right = ViewCheck(xyz[((xyz - T_true[:3, 3]) @ T_true[:3, :3])[:, 0] > 0])
     assert right.depth_agreement(T_true, zbuf, K) > 0.85
+    # The map's coverage of the frame: all of it with the whole map, about half with the right half; one rendering
+    # gives the same agreement as depth_agreement.
+    points = frame_to_points(frame).xyz
+    whole, covered = loc.view_check.compare_depth(T_true, zbuf, K, points)
+    half_agreement, half_covered = right.compare_depth(T_true, zbuf, K, points)
+    assert whole == loc.view_check.depth_agreement(T_true, zbuf, K) and covered > 0.95
+    assert half_agreement == right.depth_agreement(T_true, zbuf, K) and 0.3 < half_covered < 0.7
     # Too few cells shared with the map: nothing to judge by
     assert ViewCheck(xyz[:10]).depth_agreement(T_true, zbuf, K) == 1.0
     assert ViewCheck(xyz[:10]).depth_agreement(T_true, zbuf, K, unseen=0.0) == 0.0  # where agreement must be shown

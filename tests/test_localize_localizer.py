@@ -178,11 +178,15 @@ def test_real_scene0470_renders(scene0470_site_dir, scene0470_dir, tmp_path) -> 
 
 
 def test_a_pose_whose_depth_disagrees_with_the_map_is_not_ok(scene0470_site_dir, scene0470_dir, tmp_path) -> None:
-    """Frame 25 of `cadreg render --seed 7` without its labels: the search's best pose is 2.97 m off, yet 79 % of
-    the frame lies near some surface of the map there and no rival is close, so fitness and margin alone answered
-    it `ok` (confidence 0.55). Along the rays the map's surfaces lie elsewhere: measured depth and map agree in 38 %
-    of the cells they share, where every right pose on 7-Scenes and the scene0470 renders agreed in 78 % or more."""
+    """Frame 25 of `cadreg render --seed 7` without its labels: the search's best pose is more than a metre off, yet
+    most of the frame lies near some surface of the map there (fitness 0.79-0.86). Along the rays the map's
+    surfaces lie elsewhere: measured depth and map agree in 38-63 % of the cells they share, where every right pose
+    on 7-Scenes and the scene0470 renders agreed in 78 % or more. (Which wrong pose the search ends on differs
+    between installs of the same pinned requirements: on 2 December's it was 2.97 m off and nothing but this gate
+    kept it from `ok`; on 3 December's the frame also sees through the map there.)"""
     from cadreg.io.frames import RecordedFrames
+    from cadreg.localize.points import frame_to_points, voxel_downsample
+    from cadreg.localize.score import ViewCheck
     from cadreg.render.mesh import LabelledMesh
     from cadreg.render.sequence import render_frames
     from cadreg.site.bundle import Site
@@ -193,13 +197,17 @@ def test_a_pose_whose_depth_disagrees_with_the_map_is_not_ok(scene0470_site_dir,
     render_frames(mesh, tmp_path / "frames", 26, seed=7)
     frame, T_true = RecordedFrames.open(tmp_path / "frames").load(25)
     frame = replace(frame, labels=None)
-    r = Localizer.from_site(site).localize(frame)
+    loc = Localizer.from_site(site)
+    r = loc.localize(frame)
     assert r.status == Status.UNCERTAIN and r.T_map_camera is None
-    assert pose_errors(r.hypotheses[0].T_map_camera, T_true)[0] > 1.0  # the pose it did not claim is wrong
+    T_wrong = r.hypotheses[0].T_map_camera
+    assert pose_errors(T_wrong, T_true)[0] > 1.0  # the pose it did not claim is wrong
     assert any("depth agreement" in n for n in r.diagnostics.notes if n.startswith("uncertain"))
-    # Without the render-and-compare gate the same wrong pose is answered ok.
-    off = LocalizeConfig(match=MatchConfig(min_depth_agreement=0.0))
-    assert Localizer.from_site(site, off).localize(frame).status == Status.OK
+    # The gate tells that pose from the true one on this frame.
+    K = frame.depth_intrinsics
+    zbuf = ViewCheck.zbuffer(voxel_downsample(frame_to_points(frame), 0.03).xyz, K)
+    gate = loc.config.match.min_depth_agreement
+    assert loc.view_check.depth_agreement(T_wrong, zbuf, K) < gate <= loc.view_check.depth_agreement(T_true, zbuf, K)
 
 
 def test_warm_builds_the_fallback_features_up_front(scene) -> None:

@@ -12,8 +12,8 @@ from cadreg.camera import CameraIntrinsics
 from cadreg.config import LocalizeConfig, MatchConfig
 from cadreg.errors import InvalidArgument, InvalidFrame
 from cadreg.localize import Localizer
-from cadreg.localize.stages import (PROGRESS_STAGES, StageTimer, answer_status, confidence, low_overlap_confidence,
-                                   pose_std_m)
+from cadreg.localize.stages import (PROGRESS_STAGES, Choice, StageTimer, answer_status, confidence,
+                                   low_overlap_confidence, pose_std_m)
 from cadreg.result import Status
 from cadreg.localize.synthetic import look_pose, make_scene, render_frame
 from cadreg.result import Diagnostics
@@ -65,6 +65,16 @@ def test_a_pose_whose_depth_disagrees_with_the_map_is_uncertain() -> None:
     assert answer_status(0.9, 0.0, True, 0.0, 0.8, **rules, depth_agreement=0.42) == Status.UNCERTAIN  # rival or not
     assert answer_status(0.9, 0.5, False, 0.0, 0.8, **rules, depth_agreement=0.9) == Status.OK
     assert answer_status(0.3, 0.5, False, 0.0, 0.8, **rules, depth_agreement=0.42) == Status.LOW_OVERLAP
+
+
+def test_support_is_the_fitness_over_the_part_of_the_frame_the_map_covers() -> None:
+    def choice(fitness: float, coverage: float) -> Choice:
+        return Choice(None, None, 0.5, False, fitness, 0.015, np.zeros(3), 1000, coverage=coverage)
+
+    assert choice(0.55, 0.6).support == pytest.approx(0.55 / 0.6)  # looks partly past the map: not held against it
+    assert choice(0.55, 1.0).support == pytest.approx(0.55)  # the map covers all of it: the fitness itself
+    assert choice(0.8, 0.7).support == 1.0  # inliers in cells the map's surface sample left empty: at most 1
+    assert choice(0.55, 0.0).support == pytest.approx(0.55)  # nothing rendered to compare with: the fitness
 
 
 def test_stage_timer_adds_up_and_reports_progress() -> None:

@@ -31,6 +31,10 @@ def register(sub) -> None:
                    help="which map the refinement uses (default: RefineConfig.map_points)")
     p.add_argument("--localize-config", type=Path, default=None, metavar="FILE",
                    help="LocalizeConfig as TOML or JSON (as `cadreg serve --localize-config`); --map-points overrides it")
+    p.add_argument("--truth", type=Path, default=None, metavar="DIR",
+                   help="ground truth from DIR/<index>.txt (4x4 T_map_camera, e.g. `cadreg site fuse --write-poses`: "
+                        "where the map puts each frame) instead of the frames' recorded poses; frames without one "
+                        "are skipped")
     p.add_argument("--seed", type=int, default=0, help="seed of the perturbations of refine-from-gt-perturbed")
     p.add_argument("--json", type=Path, default=None, help="write the report as JSON here")
     p.set_defaults(func=run)
@@ -52,7 +56,7 @@ def read_views(frames_dir: Path):
 
 def run(args: argparse.Namespace) -> int:
     from ..bench import format_table, run_bench
-    from ..io.frames import RecordedFrames
+    from ..io.frames import RecordedFrames, read_indexed_poses
     from ..localize.localizer import Localizer
     from ..site.bundle import Site
 
@@ -79,8 +83,9 @@ def run(args: argparse.Namespace) -> int:
         bar.update(done - bar.n)
 
     views = read_views(args.frames)
+    truth = None if args.truth is None else read_indexed_poses(args.truth)
     report = run_bench(site, frames, methods, localizer=localizer, limit=args.limit, seed=args.seed,
-                       progress=progress, warn=log.warning, views=views)
+                       progress=progress, warn=log.warning, views=views, truth=truth)
     bar.close()
     print(format_table(report))
     if args.json:

@@ -220,6 +220,9 @@ def register_site_fuse(site_sub: argparse._SubParsersAction) -> None:
     f.add_argument("--check-window", type=int, metavar="N",
                    help="with --check-range: pose_offset of each N consecutive held-out frames as well, and how many "
                         "frames' recorded poses lie more than 5 cm from where the map puts them (pose_offset_windows)")
+    f.add_argument("--write-poses", type=Path, metavar="DIR",
+                   help="with --check-window: write DIR/<index>.txt, the 4x4 pose where the map puts each held-out "
+                        "frame of a window that lies on the map (fitness >= 0.5), for `cadreg bench --truth DIR`")
     f.add_argument("--auto-cad", action="store_true",
                    help="align the --cad-root library's CAD models to the labelled instances (frames need labels); "
                         "writes them to SITE/auto_cad.scan2cad.json")
@@ -249,7 +252,7 @@ def _site_fuse(args: argparse.Namespace) -> int:
     import sys
 
     from ..config import AutoCadConfig, FuseConfig
-    from ..io.frames import RecordedFrames
+    from ..io.frames import RecordedFrames, write_indexed_poses
     from ..site.fuse import fuse_site, map_accuracy, pose_offset, pose_offset_by_window
     from .site_cmd import write_auto_cad
 
@@ -262,6 +265,8 @@ def _site_fuse(args: argparse.Namespace) -> int:
     check = parse_range(args.check_range, frames.indices) if args.check_range else []
     if args.check_window is not None and not check:
         raise ConfigError("--check-window needs --check-range")
+    if args.write_poses is not None and args.check_window is None:
+        raise ConfigError("--write-poses needs --check-window")
     overrides = {}
     if args.voxel_m is not None:
         overrides["voxel_size_m"] = args.voxel_m
@@ -290,7 +295,11 @@ def _site_fuse(args: argparse.Namespace) -> int:
         report["check"] = {"range": args.check_range, **map_accuracy(site.map.points, frames, check),
                            "pose_offset": pose_offset(site.map.points, site.map.normals, frames, check, config=config)}
         if args.check_window is not None:
+            corrected: dict = {}  # frame index -> pose where the map puts it
             report["check"]["pose_offset_windows"] = pose_offset_by_window(
-                site.map.points, site.map.normals, frames, check, args.check_window, config=config)
+                site.map.points, site.map.normals, frames, check, args.check_window, config=config, corrected=corrected)
+            if args.write_poses is not None:
+                write_indexed_poses(args.write_poses, corrected)
+                report["check"]["poses_written"] = {"frames": len(corrected), "dir": str(args.write_poses)}
     print(json.dumps(report))
     return 0

@@ -461,3 +461,22 @@ def read_poses(path: str | Path) -> list[np.ndarray]:
     if M.shape[1] != 4 or M.shape[0] % 4 != 0 or M.shape[0] == 0:
         raise InvalidFileError(path, f"expected stacked 4x4 matrices (4N rows, 4 columns), got {M.shape}")
     return [M[4 * k:4 * k + 4].copy() for k in range(len(M) // 4)]
+
+
+def write_indexed_poses(directory: str | Path, poses: dict[int, np.ndarray]) -> None:
+    """`directory/<index>.txt`, one 4x4 T_map_camera per frame index (what `read_indexed_poses` reads)."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    for i, T_map_camera in poses.items():
+        np.savetxt(directory / f"{int(i)}.txt", np.asarray(T_map_camera, dtype=np.float64), fmt="%.12f")
+
+
+def read_indexed_poses(directory: str | Path) -> dict[int, np.ndarray]:
+    """{frame index: 4x4 T_map_camera} from a folder of `<index>.txt` files (`write_indexed_poses`)."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise InvalidFileError(directory, "not a folder of <index>.txt pose files")
+    poses = {int(p.stem): read_matrix(p) for p in directory.glob("*.txt") if p.stem.isdigit()}
+    if not poses:
+        raise InvalidFileError(directory, "no <index>.txt pose files")
+    return poses

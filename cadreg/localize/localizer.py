@@ -507,9 +507,10 @@ class Localizer:
         _, out, winner, see = refined[0]
         fitness, rmse = self.maps_at(out.T_map_camera, center_camera).refine_map.fitness(
             transform_points(out.T_map_camera, scan.check_xyz), inlier_m=rc.inlier_m)
-        agreement = 1.0 if scan.zbuf is None else self.maps_at(out.T_map_camera, center_camera).view_check.depth_agreement(
-            out.T_map_camera, scan.zbuf, scan.K)
-        return Choice(winner, out, margin, has_rival, fitness, rmse, center_camera, roi_frame_points, see, agreement)
+        agreement, coverage = (1.0, 1.0) if scan.zbuf is None else self.maps_at(
+            out.T_map_camera, center_camera).view_check.compare_depth(out.T_map_camera, scan.zbuf, scan.K, scan.check_xyz)
+        return Choice(winner, out, margin, has_rival, fitness, rmse, center_camera, roi_frame_points, see, agreement,
+                      coverage)
 
     def _rival_margin(self, scores: list[float], poses: list[np.ndarray]) -> tuple[bool, float]:
         """(has a distinct rival, margin) of poses sorted best first (refined contenders, or the candidates when
@@ -569,7 +570,7 @@ class Localizer:
         # graph answers could slide 0.44-0.54 cm.
         std = pose_std_m(out.covariance)
         slide = 0.0 if winner.hypothesis.source == "graph" else std
-        trust = confidence(choice.fitness, choice.rmse_m, choice.margin, inlier_m=rc.inlier_m,
+        trust = confidence(choice.support, choice.rmse_m, choice.margin, inlier_m=rc.inlier_m,
                            confident_margin=mc.confident_margin, see_through=choice.see_through,
                            max_see_through=mc.max_see_through, pose_std=slide, max_pose_std=mc.max_pose_std_m)
         status = answer_status(choice.fitness, choice.margin, choice.has_rival, choice.see_through, trust,
@@ -579,7 +580,7 @@ class Localizer:
                                depth_agreement=choice.depth_agreement, min_depth_agreement=mc.min_depth_agreement)
         diag.notes.append(f"trust: fitness {choice.fitness:.3f}, rmse {100 * choice.rmse_m:.2f} cm, margin "
                           f"{choice.margin:.3f}, see-through {choice.see_through:.3f}, pose std {100 * std:.2f} cm, "
-                          f"depth agreement {choice.depth_agreement:.3f}")
+                          f"depth agreement {choice.depth_agreement:.3f}, map coverage {choice.coverage:.3f}")
         if status == Status.LOW_OVERLAP:
             diag.notes.append(f"fitness {choice.fitness:.2f} below {rc.min_fitness}")
             return LocalizationResult(Status.LOW_OVERLAP, None, confidence=low_overlap_confidence(choice.fitness),

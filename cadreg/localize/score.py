@@ -221,16 +221,29 @@ class ViewCheck:
         nothing here. `unseen` when fewer than min_cells cells hold both: 1.0 for a gate (no evidence against the
         pose), 0.0 where agreement must be shown.
         """
+        mapped = self.map_depth(T_map_camera, K, cell_px=cell_px * pool)
+        return _agreement(_min_pool(zbuf, pool), mapped, tolerance_m=tolerance_m, tolerance_ratio=tolerance_ratio,
+                          max_depth_m=max_depth_m, min_cells=min_cells, unseen=unseen)
+
+    def compare_depth(self, T_map_camera: np.ndarray, zbuf: np.ndarray, K, xyz_camera: np.ndarray, *,
+                      cell_px: int = 8, pool: int = 2, max_depth_m: float = 4.0) -> tuple[float, float]:
+        """(depth agreement as `depth_agreement`, map coverage): the coverage is the share of the frame points
+        `xyz_camera` (camera frame) whose cell holds some map surface, nearer than max_depth_m or not: the part
+        of the frame the map can say anything about. One rendering of the map serves both."""
+        mapped = self.map_depth(T_map_camera, K, cell_px=cell_px * pool)
+        agreement = _agreement(_min_pool(zbuf, pool), mapped, max_depth_m=max_depth_m)
+        p = xyz_camera[xyz_camera[:, 2] > 1e-3]
+        v, u, inside = self._cells(p, K, cell_px * pool, mapped.shape)
+        if not inside.any():
+            return agreement, 0.0
+        return agreement, float(np.mean(np.isfinite(mapped[v[inside], u[inside]])))
+
+    def map_depth(self, T_map_camera: np.ndarray, K, *, cell_px: int) -> np.ndarray:
+        """(rows, cols) the map's nearest surface (one point per surface voxel) per cell of `cell_px` pixels seen
+        from the pose, inf where the map has none in view."""
         R, t = T_map_camera[:3, :3], T_map_camera[:3, 3]
         p = (self.surface_xyz - t) @ R  # map -> camera
-        p = p[(p[:, 2] > 0.2) & (p[:, 2] < max_depth_m)]
-        measured = _min_pool(zbuf, pool).ravel()
-        mapped = self.zbuffer(p, K, cell_px=cell_px * pool).ravel()  # the map's nearest surface per cell
-        both = np.isfinite(measured) & np.isfinite(mapped)
-        if both.sum() < min_cells:
-            return unseen
-        z = measured[both]
-        return float(np.mean(np.abs(z - mapped[both]) < tolerance_m + tolerance_ratio * z))
+        return self.zbuffer(p[p[:, 2] > 0.2], K, cell_px=cell_px)
 
     def see_through(self, T_map_camera: np.ndarray, zbuf: np.ndarray, K, *, cell_px: int = 8, margin_m: float = 0.1,
                     margin_ratio: float = 0.04, max_depth_m: float = 4.0, min_points: int = 50) -> float:
@@ -249,6 +262,18 @@ class ViewCheck:
             return 0.0
         front = zi[seen] < measured[seen] - (margin_m + margin_ratio * measured[seen])
         return float(front.mean())
+
+
+def _agreement(measured: np.ndarray, mapped: np.ndarray, *, tolerance_m: float = 0.05, tolerance_ratio: float = 0.02,
+               max_depth_m: float = 4.0, min_cells: int = 20, unseen: float = 1.0) -> float:
+    """Share of the cells holding both a measured depth and a map surface nearer than max_depth_m in which the two
+    agree within tolerance_m + tolerance_ratio · depth; `unseen` when fewer than min_cells hold both."""
+    measured, mapped = measured.ravel(), mapped.ravel()
+    both = np.isfinite(measured) & (mapped < max_depth_m)
+    if both.sum() < min_cells:
+        return unseen
+    z = measured[both]
+    return float(np.mean(np.abs(z - mapped[both]) < tolerance_m + tolerance_ratio * z))
 
 
 def _min_pool(grid: np.ndarray, k: int) -> np.ndarray:

@@ -96,7 +96,8 @@ class Choice:
     center_camera : (3,) centre of the frame's points, colour-camera frame; roi_frame_points : frame points kept
         inside the region of interest. see_through : share of the map in view the frame sees through at the pose;
         depth_agreement : share of the view's cells, among those holding both, where measured depth and map agree
-        (`score.ViewCheck.depth_agreement`; 1.0 without a z-buffer).
+        (`score.ViewCheck.depth_agreement`; 1.0 without a z-buffer); coverage : share of `Scan.check_xyz` whose
+        view cell holds some map surface at the pose (`score.ViewCheck.compare_depth`; 1.0 without a z-buffer).
     """
 
     candidate: Candidate
@@ -109,6 +110,17 @@ class Choice:
     roi_frame_points: int
     see_through: float = 0.0
     depth_agreement: float = 1.0
+    coverage: float = 1.0
+
+    @property
+    def support(self) -> float:
+        """The fitness over the part of the frame the map covers: a frame that looks half past the map (an open
+        door, the rest of a kitchen the map never saw) is not for that less likely right, while the points the
+        map could have explained and does not still count against it. The low-overlap gate stays on the
+        fitness itself."""
+        if self.coverage <= 0.0:
+            return self.fitness
+        return min(1.0, self.fitness / self.coverage)
 
 
 class StageTimer:
@@ -138,7 +150,8 @@ def confidence(fitness: float, rmse_m: float, margin: float, *, inlier_m: float,
         fitness · exp(−(rmse_m / inlier_m)²) · min(1, ½ + ½ · margin / confident_margin) · max(0, 1 − s / s_max)
                 · min(1, σ_max / σ)
 
-    how much of the frame lies on the map, how tightly, how clearly the best beat its distinct rival (a tie
+    how much of the frame lies on the map (the localizer passes `Choice.support`: the fitness over the part of
+    the frame the map covers), how tightly, how clearly the best beat its distinct rival (a tie
     halves the confidence, a margin of `confident_margin` or more leaves it whole), how little of the map in
     view the frame sees through (s = `see_through`, s_max = `max_see_through`), and how firmly the frame's
     geometry pins the pose (σ = `pose_std`, metres, from the refinement's covariance; σ_max = `max_pose_std`).

@@ -295,7 +295,8 @@ def pose_offset(map_points: np.ndarray, map_normals: np.ndarray, frames: Recorde
 def pose_offset_by_window(map_points: np.ndarray, map_normals: np.ndarray, frames: RecordedFrames,
                           indices: Sequence[int], window: int, *, config: FuseConfig = FuseConfig(),
                           voxel_m: float = 0.02, min_fitness: float = 0.5,
-                          offset_limit_m: float = 0.05) -> dict[str, object]:
+                          offset_limit_m: float = 0.05, corrected: dict[int, np.ndarray] | None = None
+                          ) -> dict[str, object]:
     """`pose_offset` of each run of `window` consecutive frames of `indices`: where along a sequence its recorded
     poses drift from the map. A window whose surface lies less than `min_fitness` on the map (it looks past the
     map) says little and is counted apart.
@@ -304,6 +305,10 @@ def pose_offset_by_window(map_points: np.ndarray, map_normals: np.ndarray, frame
     one that fuses to nothing), `frames_checked` (frames of windows that reach min_fitness) and
     `frames_over_limit` (those of them whose camera the correction moves by more than `offset_limit_m`: frames a
     localizer right against the map places more than that far from their record).
+
+    corrected : when given, filled with the pose each frame of a window that reaches min_fitness has where the map
+    puts it (the window's correction applied to its recorded pose): a ground truth against the map itself, for
+    `cadreg bench --truth`.
     """
     if window < 1:
         raise ConfigError(f"window must be at least 1 frame, got {window}")
@@ -318,11 +323,14 @@ def pose_offset_by_window(map_points: np.ndarray, map_normals: np.ndarray, frame
             # Frames that see no surface twice (too few, or too far apart) fuse to nothing: nothing to check.
             windows.append({"first": part[0], "last": part[-1], "frames": len(part), "fitness": 0.0})
             continue
-        moved = offset.pop("per_frame_m")
+        moved, T_map_record = offset.pop("per_frame_m"), offset.pop("T_map_record")
         windows.append({"first": part[0], "last": part[-1], **offset})
         if offset["fitness"] >= min_fitness:
             checked += len(moved)
             over += int(np.sum(np.asarray(moved) > offset_limit_m))
+            if corrected is not None:
+                corrected.update({i: T_map_record @ T for i, T in zip(part, (frames.pose(i) for i in part))
+                                  if T is not None})
     return {"window": window, "min_fitness": min_fitness, "offset_limit_m": offset_limit_m,
             "frames_checked": checked, "frames_over_limit": over, "windows": windows}
 
@@ -353,5 +361,5 @@ def _offset_onto(target: o3d.geometry.PointCloud, frames: RecordedFrames, indice
            "max_camera_offset_m": float(moved.max()), "rotation_deg": rotation_angle_deg(T[:3, :3]),
            "fitness": float(res.fitness), "rmse_m": float(res.inlier_rmse)}
     if per_frame:
-        out["per_frame_m"] = moved.tolist()
+        out["per_frame_m"], out["T_map_record"] = moved.tolist(), T
     return out
