@@ -377,9 +377,9 @@ def run_bench(site, frames, methods: list[str], *, localizer: Localizer | None =
                 o = bench.run_one(m, int(i), frame, T_true)
                 o.objects_in_view, o.gt_overlap, o.gt_fit_1cm = n_obj, overlap, gt_fit
                 if views is not None and int(i) in views:
-                    truth = views[int(i)]
-                    o.repeated = truth.repeated
-                    o.twin_answer = o.T_answer is not None and any(within_5cm_5deg(o.T_answer, T) for T in truth.T_twins)
+                    view = views[int(i)]
+                    o.repeated = view.repeated
+                    o.twin_answer = o.T_answer is not None and any(within_5cm_5deg(o.T_answer, T) for T in view.T_twins)
                 outcomes[m].append(o)
         if progress:
             progress(k + 1, len(indices))

@@ -209,6 +209,12 @@ def test_render_layout_writes_frames_and_views_json(scene0470_dir: Path, scene04
     own = tmp_path / "own"
     assert main(["render", "--layout", str(layout_path), "--out", str(own), "--n", "1", "--seed", "3"]) == 0
     assert json.loads((own / "views.json").read_text())["views"][0] == doc["views"][0]
+    # The bench reads views.json frame after frame (the second frame once found the first's view in its place).
+    report_path = tmp_path / "bench.json"
+    assert main(["bench", "--site", str(scene0470_site_dir), "--frames", str(out), "--limit", "3",
+                 "--json", str(report_path)]) == 0
+    summary = json.loads(report_path.read_text())["methods"]["cadreg"]
+    assert summary["frames"] == 3 and summary["unique"]["frames"] + summary["repeated"]["frames"] == 3
 
 
 # --- bench figures ------------------------------------------------------------------------------------------------
