@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cadreg.camera import CameraIntrinsics
-from cadreg.config import FallbackConfig, LocalizeConfig, MatchConfig, RefineConfig
+from cadreg.config import FallbackConfig, LocalizeConfig, RefineConfig
 from cadreg.errors import InvalidFrame
 from cadreg.frame import Frame
 from cadreg.geometry import make_T, pose_errors

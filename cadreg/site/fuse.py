@@ -323,14 +323,13 @@ def pose_offset_by_window(map_points: np.ndarray, map_normals: np.ndarray, frame
             # Frames that see no surface twice (too few, or too far apart) fuse to nothing: nothing to check.
             windows.append({"first": part[0], "last": part[-1], "frames": len(part), "fitness": 0.0})
             continue
-        moved, T_map_record = offset.pop("per_frame_m"), offset.pop("T_map_record")
+        moved, on_map = offset.pop("per_frame_m"), offset.pop("corrected")
         windows.append({"first": part[0], "last": part[-1], **offset})
         if offset["fitness"] >= min_fitness:
             checked += len(moved)
             over += int(np.sum(np.asarray(moved) > offset_limit_m))
             if corrected is not None:
-                corrected.update({i: T_map_record @ T for i, T in zip(part, (frames.pose(i) for i in part))
-                                  if T is not None})
+                corrected.update(on_map)
     return {"window": window, "min_fitness": min_fitness, "offset_limit_m": offset_limit_m,
             "frames_checked": checked, "frames_over_limit": over, "windows": windows}
 
@@ -361,5 +360,7 @@ def _offset_onto(target: o3d.geometry.PointCloud, frames: RecordedFrames, indice
            "max_camera_offset_m": float(moved.max()), "rotation_deg": rotation_angle_deg(T[:3, :3]),
            "fitness": float(res.fitness), "rmse_m": float(res.inlier_rmse)}
     if per_frame:
-        out["per_frame_m"], out["T_map_record"] = moved.tolist(), T
+        # How far each camera moves, and its pose where the map puts it (the correction applied to its record).
+        out["per_frame_m"] = moved.tolist()
+        out["corrected"] = {i: T @ P for i, P in zip(indices, poses) if P is not None}
     return out
