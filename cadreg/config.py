@@ -290,12 +290,22 @@ class RegionConfig(_Section):
 
     max_cached: int = Field(8, ge=1, description="regions whose refinement maps a localizer keeps built (least "
                             "recently used dropped): a worker's memory is bounded by this, not by the building")
-    max_verified: int = Field(8, ge=1, description="regions whose best graph hypotheses go on to the coarse GICP: "
-                              "the graph match ranks regions, and only the best are verified and refined")
+    max_verified: int = Field(48, ge=1, description="regions whose best graph hypotheses are pulled onto the map "
+                              "(on the stored distance field) and compared along the frame's rays: the graph match "
+                              "ranks regions, and tied rooms beyond this are reported unverified")
     tie_margin: float = Field(0.06, ge=0, le=1, description="regions whose best graph hypothesis ranks within this "
                               "of the best region's are all verified (repeated rooms tie): none is dropped unseen")
-    screen_per_region: int = Field(3, ge=1, description="hypotheses of every region kept through the quick screen "
+    screen_per_region: int = Field(1, ge=1, description="hypotheses of every region kept through the quick screen "
                                    "besides MatchConfig.screen_keep overall")
+    per_region: int = Field(1, ge=1, description="distinct graph hypotheses of each tied region compared along the "
+                            "frame's rays (a room's best by the graph is often a turned copy of the view's pose)")
+    contender_margin: float = Field(0.1, ge=0, le=1, description="distinct candidates whose view agreement lies "
+                                    "within this of the best's are refined too (MatchConfig.refine_contenders at most)")
+    twin_agreement: float = Field(0.92, ge=0, le=1, description="a distinct candidate at which the map shows the "
+                                  "same as at the answer along this share of the frame's rays is a twin: the answer "
+                                  "is ambiguous, however the frame's noise ranks the two")
+    min_view_agreement: float = Field(0.6, ge=0, le=1, description="below this view agreement the graph's best "
+                                      "is weak in a building and the fallbacks join")
     halo_m: float = Field(3.0, ge=0, description="a region's refinement map also holds its neighbours' points this "
                           "far outside its box: γ (RefineConfig.roi_radius_m) covers the whole region of interest")
 

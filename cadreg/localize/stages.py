@@ -19,6 +19,7 @@ import numpy as np
 from ..result import Hypothesis, Status
 from ..site.regions import SearchRegion
 from .cluster import ScanCluster
+from .field_view import FieldView
 from .gravity import Floor
 from .points import FramePoints
 from .refine import RefineOutcome
@@ -47,6 +48,8 @@ class Scan:
     a pose is refined in (`Localizer.maps_at`). search : the client's search region (Frame.search_region).
     unverified : in a building, the best hypotheses of rooms that tied with the best but were not verified (more
     tied than RegionConfig.max_verified): rivals the answer did not rule out.
+    view : in a building, the frame's rays and measured depth (`field_view.FieldView`): candidates there are
+    ranked by how the map looks along them. None in a one-room site.
     """
 
     points: FramePoints
@@ -65,14 +68,16 @@ class Scan:
     search: SearchRegion | None = None  # the client's search region (Frame.search_region)
     unverified: list[Hypothesis] = field(default_factory=list)  # tied rooms beyond RegionConfig.max_verified
     search_capped: bool = False  # the label-free search stopped at its node cap (LabelFreeConfig.max_nodes)
+    view: FieldView | None = None
 
 
 @dataclass
 class Candidate:
-    """A hypothesis after the coarse GICP of the verify stage.
+    """A hypothesis after the coarse alignment of the verify stage.
 
     T_map_camera : (4, 4) float64, colour camera -> map, metres.
-    score : geometric fitness weighted by label and colour agreement with the map, in [0, 1].
+    score : geometric fitness weighted by label and colour agreement with the map, in [0, 1]; in a building, the
+        share of the frame's rays along which the map shows what the frame measured (`FieldView.agreement`).
     hypothesis : what the result reports of it (its `T_map_camera` is this one).
     assignment : (scan objects,) int64 index into the map graph's nodes per scan object, -1 none; empty for
         hypotheses that did not come from the graph (fallback, prior).
@@ -82,6 +87,7 @@ class Candidate:
     score: float
     hypothesis: Hypothesis
     assignment: np.ndarray
+    rendered: np.ndarray | None = None  # in a building, (rays,) the map's depth along Scan.view's rays at the pose
 
 
 @dataclass
@@ -98,6 +104,9 @@ class Choice:
         depth_agreement : share of the view's cells, among those holding both, where measured depth and map agree
         (`score.ViewCheck.depth_agreement`; 1.0 without a z-buffer); coverage : share of `Scan.check_xyz` whose
         view cell holds some map surface at the pose (`score.ViewCheck.compare_depth`; 1.0 without a z-buffer).
+    rivals : in a building, the distinct candidates the answer cannot be told from (their view agreement within
+        the ambiguity margin of the answer's, or the map showing the same along the frame's rays at both poses:
+        `Localizer._view_rivals`); None in a one-room site, whose rivals are the candidates within the margin.
     """
 
     candidate: Candidate
@@ -111,6 +120,7 @@ class Choice:
     see_through: float = 0.0
     depth_agreement: float = 1.0
     coverage: float = 1.0
+    rivals: list[Candidate] | None = None
 
     @property
     def support(self) -> float:

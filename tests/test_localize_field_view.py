@@ -1,0 +1,104 @@
+"""The map's depth along a frame's rays, traced through the distance field, and poses pulled onto the field."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from cadreg.geometry import pose_errors
+from cadreg.localize.field_view import FieldView, align_on_field
+from cadreg.localize.points import frame_to_points, voxel_downsample
+from cadreg.localize.score import DistanceField, building_field
+from cadreg.localize.synthetic import look_pose, make_scene, render_frame
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene(3)
+
+
+@pytest.fixture(scope="module")
+def field(scene) -> DistanceField:
+    # The stored (quantized, one byte a cell) field of a building, as a composed site loads it.
+    return DistanceField.from_grid(building_field([scene.site.cloud("both").points]))
+
+
+@pytest.fixture(scope="module")
+def view_and_pose(scene):
+    T = look_pose(np.array([1.0, 1.0, 1.5]), np.radians(35.0), np.radians(20.0))
+    # A depth camera 3 cm beside the colour camera: the rays start there.
+    T_cd = np.eye(4)
+    T_cd[0, 3] = -0.03
+    frame = render_frame(scene, T, T_color_depth=T_cd, labels=False)
+    return frame, T
+
+
+def test_the_render_at_the_true_pose_is_the_measured_depth(field, view_and_pose) -> None:
+    frame, T = view_and_pose
+    view = FieldView(frame, grid=(40, 30))
+    rendered = view.render(field, T)[0]
+    both = np.isfinite(rendered) & np.isfinite(view.measured)
+    assert both.mean() > 0.9
+    assert np.median(np.abs(rendered[both] - view.measured[both])) < 0.035  # the field's cells are 3 cm
+    assert view.agreement(rendered[None])[0] > 0.7
+    # 30 cm along the view and 10° of yaw away, the map shows something else on most rays
+    T_off = T.copy()
+    T_off[:3, :3] = Rotation.from_euler("z", 10, degrees=True).as_matrix() @ T[:3, :3]
+    T_off[:3, 3] += T[:3, 2] * 0.3
+    assert view.agreement(view.render(field, T_off))[0] < 0.5
+
+
+def test_two_renders_are_compared_ray_by_ray_and_an_empty_view_shows_nothing(field, view_and_pose) -> None:
+    frame, T = view_and_pose
+    view = FieldView(frame, grid=(40, 30))
+    away = T.copy()
+    away[:3, 3] += np.array([0.0, 0.0, 50.0])  # far above the map: every ray misses it
+    r = view.render(field, np.stack([T, T, away]))
+    assert r.shape == (3, len(view))
+    assert np.isinf(r[2]).all()
+    same = view.agreement(r[:2], r[0])
+    assert np.allclose(same, 1.0)
+    assert view.agreement(r[2:], r[0])[0] == 0.0
+    assert view.agreement(r[2:], r[2])[0] == 1.0  # neither shows anything: nothing disagrees
+
+
+def test_the_sensor_range_bounds_what_is_measured_and_rendered(field, view_and_pose) -> None:
+    frame, T = view_and_pose
+    short = FieldView(frame, grid=(40, 30), max_depth_m=1.0)
+    assert np.all(short.measured[np.isfinite(short.measured)] <= 1.0)
+    rendered = short.render(field, T)[0]
+    assert np.all(rendered[np.isfinite(rendered)] <= 1.0 + 0.05)
+
+
+@pytest.mark.parametrize("up", [True, False])
+def test_poses_far_off_are_pulled_onto_the_map(field, view_and_pose, up) -> None:
+    frame, T = view_and_pose
+    down = voxel_downsample(frame_to_points(frame), 0.03)
+    points = down.xyz[np.random.default_rng(0).choice(len(down), 300, replace=False)]
+    rng = np.random.default_rng(1)
+    n = 12
+    yaw = rng.uniform(-6, 6, n)
+    R0 = Rotation.from_euler("z", yaw[:, None], degrees=True).as_matrix() @ T[:3, :3]
+    t0 = T[:3, 3] + rng.uniform(-0.2, 0.2, (n, 3)) * np.array([1.0, 1.0, 0.3])
+    R1, t1 = align_on_field(field, points, R0, t0, up=np.array([0.0, 0.0, 1.0]) if up else None,
+                            iterations=15, reach_m=(0.5, 0.06))
+    errors = []
+    for k in range(n):
+        A = np.eye(4)
+        A[:3, :3], A[:3, 3] = R1[k], t1[k]
+        errors.append(pose_errors(A, T))
+    errors = np.array(errors)
+    assert np.mean((errors[:, 0] < 0.05) & (errors[:, 1] < 2.0)) >= 0.9  # a start for the fine refinement
+    start = np.array([pose_errors(np.block([[R0[k], t0[k][:, None]], [0, 0, 0, 1]]), T)[0] for k in range(n)])
+    assert np.median(errors[:, 0]) < 0.25 * np.median(start)
+    if up:  # turned about up only: the tilt of the start stays
+        tilt = [np.degrees(np.arccos(np.clip((R1[k] @ R0[k].T)[2, 2], -1, 1))) for k in range(n)]
+        assert max(tilt) < 1e-3
+
+
+def test_no_poses_and_no_points_leave_the_poses_as_they_are(field) -> None:
+    R, t = align_on_field(field, np.zeros((0, 3)), np.eye(3)[None], np.zeros((1, 3)))
+    assert np.allclose(R, np.eye(3)) and np.allclose(t, 0)
+    R, t = align_on_field(field, np.ones((5, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)))
+    assert R.shape == (0, 3, 3)
