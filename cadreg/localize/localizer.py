@@ -34,6 +34,7 @@ from .color_gicp import rgb_to_lab
 from .bbs import GridPyramid, map_direction_histogram, polish, yaw_candidates
 from .fallback import FpfhRansac
 from .field_view import FieldView, align_on_field
+from .twins import RoomTwins
 from .gravity import estimate_floor, map_floor_height, map_up_axis, planar_normals
 from .match import Hypotheses, MapGraph, distinct_best, gravity_hypotheses, kabsch_hypotheses, score_graph
 from .points import FramePoints, frame_to_points, voxel_downsample
@@ -73,6 +74,12 @@ SLIDE_TOLERANCE = 0.01
 # within 5 cm / 5° in 86 % of the cases (72 % from a 25 cm reach in 10 steps; 20 cm off: 98 %), at 1.4 ms each.
 FIELD_ALIGN_ITERATIONS = 15
 FIELD_ALIGN_REACH_M = (0.5, 0.06)
+# A view moved into a room that repeats it starts within the copies' misfit (centimetres): a short alignment.
+TWIN_ALIGN_ITERATIONS = 6
+TWIN_ALIGN_REACH_M = (0.15, 0.06)
+# A copy's pose goes on to the alignment and the render when the frame's points fit the field there at most this
+# much worse than at the answer (MatchConfig.score_tau_m's soft inlier share).
+TWIN_SCREEN_MARGIN = 0.15
 # Flat-surface normals sampled for the yaw candidates of the label-free search when the up estimate gave none.
 YAW_NORMAL_POINTS = 1000
 # An object's top is the 98th percentile of its points along up: the highest 2 % are mixed pixels and noise.
@@ -103,6 +110,7 @@ class Localizer:
         self._fpfh: FpfhRansac | None = None
         self._whole: RefineMap | None = None
         self._pyramid: tuple[GridPyramid, np.ndarray | None] | None = None
+        self.twins = RoomTwins(graph, self.node_region, up, len(maps.regions)) if len(maps) > 1 else None
 
     @classmethod
     def from_site(cls, site: Site, config: LocalizeConfig = LocalizeConfig()) -> "Localizer":
@@ -517,7 +525,9 @@ class Localizer:
         if scan.view is not None:
             refined.sort(key=lambda r: -r[0])
             self._report_refined(refined, candidates)
-            has_rival, margin, rivals = self._view_rivals(refined, renders, candidates, scan)
+            twins = self._twin_views(scan, refined[0][1].T_map_camera, center_camera, candidates, renders, len(refined))
+            candidates.extend(t[2] for t in twins)
+            has_rival, margin, rivals = self._view_rivals(refined + twins, renders, candidates, scan)
             diag.notes.append(f"refined {len(refined)} of the best poses, view agreement "
                               + ", ".join(f"{r[0]:.3f}" for r in refined)
                               + (f"; {len(rivals)} distinct poses look the same along the frame's rays" if rivals else ""))
@@ -563,6 +573,53 @@ class Localizer:
             if (best.score - c.score < margin or as_strong) and all(
                     self._distinct(c.T_map_camera, k.T_map_camera) for k in out):
                 out.append(c)
+        return out
+
+    def _twin_views(self, scan: Scan, T_map_camera: np.ndarray, center_camera: np.ndarray,
+                    candidates: list[Candidate], renders: dict[int, np.ndarray], refined: int) -> list[tuple]:
+        """In a building: the winner's pose moved into each room that repeats the room its view looks into
+        (`twins.py`), where no refined contender stands, pulled onto the field and rendered: (view agreement, outcome,
+        candidate, 0.0) as the refined contenders, each render put in `renders` under its outcome's id.
+        candidates : the refined contenders first (`refined` of them), then the others; an unrefined candidate at a
+        copy's pose is dropped from it (the copy's pose comes from the refined answer), a refined one stands.
+        The graph match misses a copy whose objects rank it lower (a chair missing out of view, another
+        neighbour), and a view that copy repeats must not be answered `ok`, nor one it shows better."""
+        a = int(self.maps.indices_at(T_map_camera[:3, :3] @ center_camera + T_map_camera[:3, 3])[0])
+        moved = np.array([T_ba @ T_map_camera for _, T_ba in self.twins.of(a)]).reshape(-1, 4, 4)
+        if scan.search is not None and len(moved):
+            moved = moved[scan.search.allows(moved[:, :3, 3], self.maps.regions)]
+        moved = [T for T in moved if all(self._distinct(T, c.T_map_camera) for c in candidates[:refined])]
+        if len(moved):
+            # The view's pose in each copy, where the frame's points fit the map about as well as at the answer:
+            # a cheap screen on the field before the alignment and the render (a 100-room building has 99 copies).
+            mc = self.config.match
+            Ms = np.array(moved)
+            fit = score_poses(self.field, scan.score_xyz, Ms[:, :3, :3], Ms[:, :3, 3], tau_m=mc.score_tau_m)
+            here = score_poses(self.field, scan.score_xyz, T_map_camera[None, :3, :3], T_map_camera[None, :3, 3],
+                               tau_m=mc.score_tau_m)[0]
+            moved = [T for T, f in zip(moved, fit) if f >= here - TWIN_SCREEN_MARGIN]
+        if not moved:
+            return []
+        candidates[refined:] = [c for c in candidates[refined:] if all(self._distinct(c.T_map_camera, T) for T in moved)]
+        R, t = align_on_field(self.field, scan.score_xyz, np.array([T[:3, :3] for T in moved]),
+                              np.array([T[:3, 3] for T in moved]), up=None if scan.floor is None else self.up,
+                              iterations=TWIN_ALIGN_ITERATIONS, reach_m=TWIN_ALIGN_REACH_M)
+        aligned = np.tile(np.eye(4), (len(moved), 1, 1))
+        aligned[:, :3, :3], aligned[:, :3, 3] = R, t
+        # The moved pose itself too: the copies of a composed building are exact, and the field's alignment,
+        # good to a centimetre or two, would only blur them; real copies differ by more and gain from it.
+        both = np.concatenate([np.array(moved), aligned])
+        rendered_both = scan.view.render(self.field, both)
+        score_both = scan.view.agreement(rendered_both).reshape(2, -1)
+        pick = np.argmax(score_both, axis=0) * len(moved) + np.arange(len(moved))
+        T, rendered, score = both[pick], rendered_both[pick], score_both.ravel()[pick]
+        out = []
+        for k, T_k in enumerate(T.copy()):  # one array per pose, shared by its outcome and its candidate
+            h = Hypothesis(T_k, 0.0, 0.0, 0.0, float(score[k]), source="twin", region=self.region_of(T_k))
+            outcome = RefineOutcome(T_k, None, 0, False, "field")
+            renders[id(outcome)] = rendered[k]
+            out.append((float(score[k]), outcome, Candidate(T_k, float(score[k]), h, np.zeros(0, np.int64), rendered[k]),
+                        0.0))
         return out
 
     def _report_refined(self, refined: list, candidates: list[Candidate]) -> None:
