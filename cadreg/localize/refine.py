@@ -78,7 +78,8 @@ class RefineMap:
         # The fine target costs most of a map's build and only the refinement of the best poses uses it: built on
         # first use (`fine_target`), so that verifying a hypothesis in another room of a building stays cheap.
         self._sg_fine: tuple[small_gicp.PointCloud, small_gicp.KdTree] | None = None
-        self.sg_coarse, self.sg_coarse_tree = small_gicp.preprocess_points(self.xyz, coarse_voxel_m, num_neighbors=GICP_NEIGHBORS)
+        # The coarse target likewise: a building's candidates are aligned on its distance field, not here.
+        self._sg_coarse: tuple[small_gicp.PointCloud, small_gicp.KdTree] | None = None
         keep = voxel_indices(self.xyz, fitness_voxel_m)
         self.fit_xyz = self.xyz[keep]
         self.fit_lab = rgb_to_lab(self.rgb[keep])
@@ -97,6 +98,12 @@ class RefineMap:
         if self._sg_fine is None:
             self._sg_fine = small_gicp.preprocess_points(self.xyz, self.fine_voxel_m, num_neighbors=GICP_NEIGHBORS)
         return self._sg_fine
+
+    def coarse_target(self) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
+        """small_gicp's map at coarse_voxel_m and its KD-tree."""
+        if self._sg_coarse is None:
+            self._sg_coarse = small_gicp.preprocess_points(self.xyz, self.coarse_voxel_m, num_neighbors=GICP_NEIGHBORS)
+        return self._sg_coarse
 
     def color_targets(self) -> list[ColorGicpTarget]:
         if self._color_targets is None:
@@ -160,7 +167,8 @@ class RefineMap:
         """A cheap GICP at the coarse scale to pull a hypothesis in before it is ranked: (4, 4) T_map_camera.
 
         source : frame points (colour-camera frame) preprocessed at the coarse voxel size."""
-        res = small_gicp.align(self.sg_coarse, source, self.sg_coarse_tree, init_T_target_source=init_T_map_camera,
+        target, tree = self.coarse_target()
+        res = small_gicp.align(target, source, tree, init_T_target_source=init_T_map_camera,
                                registration_type="GICP", max_correspondence_distance=max_correspondence_m,
                                num_threads=1, max_iterations=max_iterations)
         return np.asarray(res.T_target_source)
