@@ -36,9 +36,12 @@ class Hypothesis:
     sim, s_v, s_e : the paper's Sim = α·S_V + β·S_E and its node and edge terms (eq. 6–8), in [0, 1]; 0 for
         hypotheses not from the graph.
     geometric_score : geometric fitness weighted by label and colour agreement with the map, in [0, 1] (what
-        hypotheses are ranked by).
+        hypotheses are ranked by); in a building, the view agreement (share of the frame's rays along which the map
+        shows what the frame measured, `localize/field_view.py`).
     matches : (scan object index, map node id) pairs the hypothesis rests on.
-    source : "graph" | "prior" | "fallback:<name>".
+    source : "graph" | "prior" | "fallback:<name>"; in a building also "graph:unverified" / "fallback:bbs:unverified"
+        (a tied room there was no budget to verify: reported as found) and "twin" (the answer's view moved into a
+        room that repeats the answer's, `localize/twins.py`).
     region : id of the site region the pose looks into (a building's room; the site's id for a one-room site).
     """
 

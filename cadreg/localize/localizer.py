@@ -460,7 +460,7 @@ class Localizer:
             contenders = [best] + [c for c in candidates[1:mc.refine_contenders] if best.score - c.score < mc.ambiguity_margin
                                    and self._distinct(c.T_map_camera, best.T_map_camera)]
         else:
-            contenders = self._view_contenders(candidates)
+            contenders = self._view_contenders(candidates, scan.center_camera)
         # Region of interest (paper §2.5, radius γ about the frame's centre under the hypothesis). The map's search
         # structures are built once per site rather than cropped per frame; leaving out the frame points farther
         # than γ from their centroid has the same effect, since correspondences are sought only a few centimetres
@@ -527,6 +527,13 @@ class Localizer:
             refined.sort(key=lambda r: -r[0])
             self._report_refined(refined, candidates)
             twins = self._twin_views(scan, refined[0][1].T_map_camera, center_camera, candidates, renders, len(refined))
+            if twins and max(t[0] for t in twins) > refined[0][0]:
+                # A copy of the winner's room shows the frame better: it is refined too, and may win.
+                promoted = max(twins, key=lambda t: t[0])
+                twins.remove(promoted)
+                refined.append(refine(promoted[2]))
+                refined.sort(key=lambda r: -r[0])
+                self._report_refined(refined, candidates)
             candidates.extend(t[2] for t in twins)
             has_rival, margin, rivals = self._view_rivals(refined + twins, renders, candidates, scan)
             diag.notes.append(f"refined {len(refined)} of the best poses, view agreement "
@@ -558,17 +565,22 @@ class Localizer:
         return Choice(winner, out, margin, has_rival, fitness, rmse, center_camera, roi_frame_points, see, agreement,
                       coverage, rivals)
 
-    def _view_contenders(self, candidates: list[Candidate]) -> list[Candidate]:
+    def _view_contenders(self, candidates: list[Candidate], center_camera: np.ndarray) -> list[Candidate]:
         """In a building: the best candidate and, up to MatchConfig.refine_contenders, its distinct rivals within
         RegionConfig.contender_margin of its view agreement, to be refined: a rival room's pose the field
         alignment left a few centimetres off looks worse along the rays than it is, and only refined poses can be
-        told apart, or found to be the same view, fairly. (Rooms that repeat the winner's are looked at after,
-        from its refined pose: `_twin_views`.)"""
+        told apart, or found to be the same view, fairly. A candidate at the best's view moved into a room that
+        repeats the best's is left to the twin check, which looks at it from the refined winner
+        (`_twin_views`): each refinement in a building builds a room's map (0.3 s at 100 rooms)."""
         best, margin = candidates[0], self.config.regions.contender_margin
+        copies = dict(self.twins.of(self._roi_region(best.T_map_camera, center_camera)))
         out = [best]
         for c in candidates[1:]:
             if len(out) >= self.config.match.refine_contenders:
                 break
+            b = self._roi_region(c.T_map_camera, center_camera)
+            if b in copies and not self._distinct(copies[b] @ best.T_map_camera, c.T_map_camera):
+                continue
             if best.score - c.score < margin and all(
                     self._distinct(c.T_map_camera, k.T_map_camera) for k in out):
                 out.append(c)
@@ -583,7 +595,7 @@ class Localizer:
         copy's pose is dropped from it (the copy's pose comes from the refined answer), a refined one stands.
         The graph match misses a copy whose objects rank it lower (a chair missing out of view, another
         neighbour), and a view that copy repeats must not be answered `ok`, nor one it shows better."""
-        a = int(self.maps.indices_at(T_map_camera[:3, :3] @ center_camera + T_map_camera[:3, 3])[0])
+        a = self._roi_region(T_map_camera, center_camera)
         moved = np.array([T_ba @ T_map_camera for _, T_ba in self.twins.of(a)]).reshape(-1, 4, 4)
         if scan.search is not None and len(moved):
             moved = moved[scan.search.allows(moved[:, :3, 3], self.maps.regions)]
@@ -621,6 +633,10 @@ class Localizer:
                         0.0))
         return out
 
+    def _roi_region(self, T_map_camera: np.ndarray, center_camera: np.ndarray) -> int:
+        """Index of the region holding the centre of a pose's region of interest (what `maps_at` builds)."""
+        return int(self.maps.indices_at(T_map_camera[:3, :3] @ center_camera + T_map_camera[:3, 3])[0])
+
     def _report_refined(self, refined: list, candidates: list[Candidate]) -> None:
         """In a building: the refined contenders' candidates are replaced, in `candidates` and in the refined
         order (the winner first), by their refined poses and view agreements, so that the result reports the poses
@@ -630,8 +646,8 @@ class Localizer:
             T = out.T_map_camera
             first.append(replace(c, T_map_camera=T, score=score, hypothesis=replace(
                 c.hypothesis, T_map_camera=T, geometric_score=score, region=self.region_of(T))))
-        done = [r[2] for r in refined]
-        candidates[:] = first + [c for c in candidates if not any(c is d for d in done)]
+        done = [r[2] for r in refined] + first
+        candidates[:] = first + [c for c in candidates if not any(c is d or c.T_map_camera is d.T_map_camera for d in done)]
 
     def _view_rivals(self, refined: list, renders: dict[int, np.ndarray], candidates: list[Candidate],
                      scan: Scan) -> tuple[bool, float, list[Candidate]]:
