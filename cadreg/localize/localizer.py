@@ -528,12 +528,18 @@ class Localizer:
             self._report_refined(refined, candidates)
             twins = self._twin_views(scan, refined[0][1].T_map_camera, center_camera, candidates, renders, len(refined))
             if twins and max(t[0] for t in twins) > refined[0][0]:
-                # A copy of the winner's room shows the frame better: it is refined too, and may win.
+                # A copy of the winner's room shows the frame better: it is refined too, and may win; a new winner's
+                # own copies are then looked at as well.
                 promoted = max(twins, key=lambda t: t[0])
                 twins.remove(promoted)
                 refined.append(refine(promoted[2]))
                 refined.sort(key=lambda r: -r[0])
                 self._report_refined(refined, candidates)
+                if refined[0][2] is promoted[2]:
+                    candidates.extend(t[2] for t in twins)
+                    twins += self._twin_views(scan, refined[0][1].T_map_camera, center_camera, candidates, renders,
+                                              len(refined))
+                    candidates[len(refined):] = [c for c in candidates[len(refined):] if all(c is not t[2] for t in twins)]
             candidates.extend(t[2] for t in twins)
             has_rival, margin, rivals = self._view_rivals(refined + twins, renders, candidates, scan)
             diag.notes.append(f"refined {len(refined)} of the best poses, view agreement "

@@ -26,9 +26,11 @@ MATCH_TOLERANCE_M = 0.3
 # poorly) and its length agrees with the other room's pair within PAIR_TOLERANCE_M.
 MIN_PAIR_M = 0.5
 PAIR_TOLERANCE_M = 0.15
-# Copies: at least this many objects, and this share of the smaller room's objects, correspond.
+# Copies: at least this many objects, and this share of the smaller room's objects, correspond. Copies of one
+# room each missing a few objects share few of them (two copies of an 11-object room missing three different
+# ones each share 5 of 8): three objects of the same classes in the same layout are already no chance.
 MIN_SHARED = 3
-MIN_SHARED_SHARE = 0.6
+MIN_SHARED_SHARE = 0.4
 
 
 class RoomTwins:
