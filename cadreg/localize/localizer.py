@@ -602,10 +602,11 @@ class Localizer:
         The graph match misses a copy whose objects rank it lower (a chair missing out of view, another
         neighbour), and a view that copy repeats must not be answered `ok`, nor one it shows better."""
         a = self._roi_region(T_map_camera, center_camera)
-        moved = np.array([T_ba @ T_map_camera for _, T_ba in self.twins.of(a)]).reshape(-1, 4, 4)
-        if scan.search is not None and len(moved):
-            moved = moved[scan.search.allows(moved[:, :3, 3], self.maps.regions)]
-        moved = [T for T in moved if all(self._distinct(T, c.T_map_camera) for c in candidates[:refined])]
+        copies = [(b, T_ba) for b, T_ba in self.twins.of(a)
+                  if scan.search is None or scan.search.allows((T_ba @ T_map_camera)[None, :3, 3], self.maps.regions)[0]]
+        copies = [(b, T_ba) for b, T_ba in copies
+                  if all(self._distinct(T_ba @ T_map_camera, c.T_map_camera) for c in candidates[:refined])]
+        moved = [T_ba @ T_map_camera for _, T_ba in copies]
         if len(moved):
             # The view's pose in each copy, where the frame's points fit the map about as well as at the answer:
             # a cheap screen on the field before the alignment and the render (a 100-room building has 99 copies).
@@ -614,9 +615,12 @@ class Localizer:
             fit = score_poses(self.field, scan.score_xyz, Ms[:, :3, :3], Ms[:, :3, 3], tau_m=mc.score_tau_m)
             here = score_poses(self.field, scan.score_xyz, T_map_camera[None, :3, :3], T_map_camera[None, :3, 3],
                                tau_m=mc.score_tau_m)[0]
+            copies = [c for c, f in zip(copies, fit) if f >= here - TWIN_SCREEN_MARGIN]
             moved = [T for T, f in zip(moved, fit) if f >= here - TWIN_SCREEN_MARGIN]
         if not moved:
             return []
+        # The objects the winner matched, carried into each copy: what pins the copy's pose as they pin the winner's.
+        assignment = candidates[0].assignment
         candidates[refined:] = [c for c in candidates[refined:] if all(self._distinct(c.T_map_camera, T) for T in moved)]
         R, t = align_on_field(self.field, scan.score_xyz, np.array([T[:3, :3] for T in moved]),
                               np.array([T[:3, 3] for T in moved]), up=None if scan.floor is None else self.up,
@@ -632,11 +636,12 @@ class Localizer:
         T, rendered, score = both[pick], rendered_both[pick], score_both.ravel()[pick]
         out = []
         for k, T_k in enumerate(T.copy()):  # one array per pose, shared by its outcome and its candidate
-            h = Hypothesis(T_k, 0.0, 0.0, 0.0, float(score[k]), source="twin", region=self.region_of(T_k))
+            carried = self.twins.carry(assignment, copies[k][0], copies[k][1])
+            h = Hypothesis(T_k, 0.0, 0.0, 0.0, float(score[k]), source="twin", region=self.region_of(T_k),
+                           matches=[(int(i), self.graph.ids[n]) for i, n in enumerate(carried) if n >= 0])
             outcome = RefineOutcome(T_k, None, 0, False, "field")
             renders[id(outcome)] = rendered[k]
-            out.append((float(score[k]), outcome, Candidate(T_k, float(score[k]), h, np.zeros(0, np.int64), rendered[k]),
-                        0.0))
+            out.append((float(score[k]), outcome, Candidate(T_k, float(score[k]), h, carried, rendered[k]), 0.0))
         return out
 
     def _roi_region(self, T_map_camera: np.ndarray, center_camera: np.ndarray) -> int:
@@ -728,13 +733,16 @@ class Localizer:
         mc, rc = self.config.match, self.config.refine
         out, winner = choice.outcome, choice.candidate
         T = out.T_map_camera
-        diag.method = "cadreg" if winner.hypothesis.source == "graph" else winner.hypothesis.source
+        # A copy's pose carried over from a graph answer rests on the same objects, in its own room.
+        by_objects = winner.hypothesis.source == "graph" or (winner.hypothesis.source == "twin"
+                                                             and bool(np.any(winner.assignment >= 0)))
+        diag.method = "cadreg" if by_objects else winner.hypothesis.source
         diag.refinement = Refinement(method=out.method, iterations=out.iterations, fitness=choice.fitness,
                                      inlier_rmse_m=choice.rmse_m, converged=out.converged)
         center = transform_points(T, choice.center_camera[None])[0]
         in_roi = self.maps_at(T, choice.center_camera).refine_map.roi_count(center, rc.roi_radius_m)
         diag.roi = Roi(center.tolist(), rc.roi_radius_m, in_roi, choice.roi_frame_points)
-        if winner.hypothesis.source == "graph":
+        if by_objects:
             diag.matches = [Match(i, self.graph.ids[a], self.site.classes[scan.clusters[i].cls])
                             for i, a in enumerate(winner.assignment) if a >= 0]
         hypotheses = [c.hypothesis for c in candidates[:top_k]]
@@ -745,7 +753,7 @@ class Localizer:
         # directions the refinement leaves free (it does not move it there), and in the 10-room building right
         # graph answers could slide 0.44-0.54 cm.
         std = pose_std_m(out.covariance)
-        slide = 0.0 if winner.hypothesis.source == "graph" else std
+        slide = 0.0 if by_objects else std
         trust = confidence(choice.support, choice.rmse_m, choice.margin, inlier_m=rc.inlier_m,
                            confident_margin=mc.confident_margin, see_through=choice.see_through,
                            max_see_through=mc.max_see_through, pose_std=slide, max_pose_std=mc.max_pose_std_m)

@@ -55,6 +55,23 @@ class RoomTwins:
                               for T in [self._transform(self._nodes[a], self._nodes[b])] if T is not None]
         return self._found[a]
 
+    def carry(self, nodes: np.ndarray, b: int, T_ba: np.ndarray) -> np.ndarray:
+        """Graph node indices (-1: none) moved by T_ba onto their counterparts in region b: the nearest node of b of
+        the same class within MATCH_TOLERANCE_M, else -1 (an object that copy lacks)."""
+        nodes = np.asarray(nodes, dtype=np.int64)
+        out = np.full(len(nodes), -1, dtype=np.int64)
+        nb = self._nodes[b]
+        L = self._R_level
+        for k, n in enumerate(nodes):
+            if n < 0 or not len(nb):
+                continue
+            moved = L @ (T_ba[:3, :3] @ (L.T @ self._level[n]) + T_ba[:3, 3])
+            d = np.linalg.norm(self._level[nb] - moved, axis=1)
+            d[self._cls[nb] != self._cls[n]] = np.inf
+            if d.min() < MATCH_TOLERANCE_M:
+                out[k] = nb[int(np.argmin(d))]
+        return out
+
     def _transform(self, na: np.ndarray, nb: np.ndarray) -> np.ndarray | None:
         """T (4, 4, map frame) taking the objects `na` onto the objects `nb`, or None when they are no copies."""
         if min(len(na), len(nb)) < MIN_SHARED:
