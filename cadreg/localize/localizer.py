@@ -526,7 +526,8 @@ class Localizer:
         if scan.view is not None:
             refined.sort(key=lambda r: -r[0])
             self._report_refined(refined, candidates)
-            twins = self._twin_views(scan, refined[0][1].T_map_camera, center_camera, candidates, renders, len(refined))
+            twins = self._twin_views(scan, refined[0][1].T_map_camera, center_camera, candidates, renders, len(refined),
+                                     refined[0][0])
             if twins and max(t[0] for t in twins) > refined[0][0]:
                 # A copy of the winner's room shows the frame better: it is refined too, and may win; a new winner's
                 # own copies are then looked at as well.
@@ -538,7 +539,7 @@ class Localizer:
                 if refined[0][2] is promoted[2]:
                     candidates.extend(t[2] for t in twins)
                     twins += self._twin_views(scan, refined[0][1].T_map_camera, center_camera, candidates, renders,
-                                              len(refined))
+                                              len(refined), refined[0][0])
                     candidates[len(refined):] = [c for c in candidates[len(refined):] if all(c is not t[2] for t in twins)]
             candidates.extend(t[2] for t in twins)
             has_rival, margin, rivals = self._view_rivals(refined + twins, renders, candidates, scan)
@@ -593,10 +594,12 @@ class Localizer:
         return out
 
     def _twin_views(self, scan: Scan, T_map_camera: np.ndarray, center_camera: np.ndarray,
-                    candidates: list[Candidate], renders: dict[int, np.ndarray], refined: int) -> list[tuple]:
+                    candidates: list[Candidate], renders: dict[int, np.ndarray], refined: int,
+                    view_score: float) -> list[tuple]:
         """In a building: the winner's pose moved into each room that repeats the room its view looks into
         (`twins.py`), where no refined contender stands, pulled onto the field and rendered: (view agreement, outcome,
         candidate, 0.0) as the refined contenders, each render put in `renders` under its outcome's id.
+        view_score : the winner's view agreement.
         candidates : the refined contenders first (`refined` of them), then the others; an unrefined candidate at a
         copy's pose is dropped from it (the copy's pose comes from the refined answer), a refined one stands.
         The graph match misses a copy whose objects rank it lower (a chair missing out of view, another
@@ -622,18 +625,24 @@ class Localizer:
         # The objects the winner matched, carried into each copy: what pins the copy's pose as they pin the winner's.
         assignment = candidates[0].assignment
         candidates[refined:] = [c for c in candidates[refined:] if all(self._distinct(c.T_map_camera, T) for T in moved)]
-        R, t = align_on_field(self.field, scan.score_xyz, np.array([T[:3, :3] for T in moved]),
-                              np.array([T[:3, 3] for T in moved]), up=None if scan.floor is None else self.up,
-                              iterations=TWIN_ALIGN_ITERATIONS, reach_m=TWIN_ALIGN_REACH_M)
-        aligned = np.tile(np.eye(4), (len(moved), 1, 1))
-        aligned[:, :3, :3], aligned[:, :3, 3] = R, t
-        # The moved pose itself too: the copies of a composed building are exact, and the field's alignment,
-        # good to a centimetre or two, would only blur them; real copies differ by more and gain from it.
-        both = np.concatenate([np.array(moved), aligned])
-        rendered_both = scan.view.render(self.field, both)
-        score_both = scan.view.agreement(rendered_both).reshape(2, -1)
-        pick = np.argmax(score_both, axis=0) * len(moved) + np.arange(len(moved))
-        T, rendered, score = both[pick], rendered_both[pick], score_both.ravel()[pick]
+        T = np.array(moved)
+        rendered = scan.view.render(self.field, T)
+        score = scan.view.agreement(rendered)
+        # A moved pose that shows the frame less well than the answer may only be a little off (real copies are
+        # never placed exactly): it is pulled onto the field, and kept there when that shows the frame better.
+        # The copies of a composed building are exact, and the field's alignment, good to a centimetre or two,
+        # would only blur the others.
+        low = np.flatnonzero(score < view_score - self.config.match.ambiguity_margin)
+        if len(low):
+            R, t = align_on_field(self.field, scan.score_xyz, T[low, :3, :3], T[low, :3, 3],
+                                  up=None if scan.floor is None else self.up,
+                                  iterations=TWIN_ALIGN_ITERATIONS, reach_m=TWIN_ALIGN_REACH_M)
+            aligned = np.tile(np.eye(4), (len(low), 1, 1))
+            aligned[:, :3, :3], aligned[:, :3, 3] = R, t
+            again = scan.view.render(self.field, aligned)
+            better = scan.view.agreement(again) > score[low]
+            T[low[better]], rendered[low[better]] = aligned[better], again[better]
+            score = scan.view.agreement(rendered)
         out = []
         for k, T_k in enumerate(T.copy()):  # one array per pose, shared by its outcome and its candidate
             carried = self.twins.carry(assignment, copies[k][0], copies[k][1])
