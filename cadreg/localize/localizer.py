@@ -172,6 +172,7 @@ class Localizer:
         if len(self.maps) == 1:
             self.refine_map.fine_target()
             self.refine_map.coarse_target()
+            self.refine_map.fit_lab  # noqa: B018  (made on first read)
         # A building's FPFH features (the last resort, with no up direction) would cost seconds and a copy of
         # the whole map in every worker: built on first use there.
         if self.config.fallback.enabled and len(self.maps) == 1:
