@@ -168,6 +168,7 @@ class WorkerPool:
         self.start_error: dict[str, Any] | None = None
         # Futures are settled after the lock is released: their callbacks may call back into the pool.
         self._outbox: list[tuple[concurrent.futures.Future, Any, BaseException | None]] = []
+        self._settling = 0  # futures of the outbox being settled now (`_flush`), their callbacks running
 
     # --- public ---------------------------------------------------------------------------------------------------
 
@@ -214,9 +215,12 @@ class WorkerPool:
             ]
 
     def free_slots(self) -> int:
-        """How many more jobs `submit` would take now (idle workers + free queue places)."""
+        """How many more jobs `submit` would take now (idle workers + free queue places), less the jobs whose
+        answers are being delivered: a worker is idle as soon as its answer is read, but the callbacks of its future
+        (a tracking session's state stored, its search lease released) run a moment later, and a stream that took
+        its device's next frame in between sent it without the state (answered `no_match` when it could not search)."""
         with self._lock:
-            return self._free_slots()
+            return self._free_slots() - len(self._outbox) - self._settling
 
     def _free_slots(self) -> int:  # lock held
         idle = sum(w.state == "idle" and not w.controls for w in self._workers)
@@ -358,8 +362,13 @@ class WorkerPool:
         """Settle the futures decided under the lock (call without the lock held)."""
         with self._lock:
             outbox, self._outbox = self._outbox, []
-        for future, value, exc in outbox:
-            _settle(future, value, exc)
+            self._settling += len(outbox)
+        try:
+            for future, value, exc in outbox:
+                _settle(future, value, exc)
+        finally:
+            with self._lock:
+                self._settling -= len(outbox)
 
     def _wake(self) -> None:
         with self._lock:

@@ -61,6 +61,20 @@ def test_a_job_gives_a_result_with_its_version_and_timings(pool, envelope, scene
     assert job.run_ms > 0 and job.queue_ms >= 0 and job.worker_pid == pool.workers_info()[0]["pid"]
 
 
+def test_a_slot_frees_only_after_its_answer_is_delivered(pool, envelope) -> None:
+    """A stream takes its device's next frame when the pool has room; the finished frame's callbacks (its tracking
+    session's state stored) must have run by then, or the next frame leaves without the state."""
+    parts, meta = envelope
+    while pool.free_slots() < 3:  # idle: one worker and two queue places
+        time.sleep(0.01)
+    seen: list[int] = []
+    future = pool.submit("scene0470", None, parts, meta)
+    future.add_done_callback(lambda f: seen.append(pool.free_slots()))
+    future.result(timeout=60)
+    assert seen == [2]  # while its callbacks ran, the job still held its place
+    assert pool.free_slots() == 3
+
+
 def test_worker_errors_come_back_typed_and_the_worker_lives_on(pool, envelope) -> None:
     parts, meta = envelope
     with pytest.raises(UnknownSite):
