@@ -102,6 +102,21 @@ class FieldView:
             both = a & b & (np.abs(rendered - ref) < tolerance_m + tolerance_ratio * near)
         return np.where(either > 0, both.sum(axis=1) / np.maximum(either, 1), 1.0)
 
+    def shared(self, rendered: np.ndarray, *, tolerance_m: float = 0.04, tolerance_ratio: float = 0.02,
+               min_rays: int = 20) -> tuple[float, float]:
+        """(depth agreement, map coverage) of one render (r,), as `score.ViewCheck.compare_depth` gives them: the
+        share of the rays with a depth in both the frame and the map on which the two agree, and the share of the
+        frame's measured rays on which the map shows a surface. (1.0, coverage) when fewer than min_rays hold
+        both: no evidence against the pose."""
+        a, b = np.isfinite(rendered), np.isfinite(self.measured)
+        both = a & b
+        coverage = float(both.sum() / max(b.sum(), 1))
+        if both.sum() < min_rays:
+            return 1.0, coverage
+        z = np.minimum(rendered[both], self.measured[both])
+        close = np.abs(rendered[both] - self.measured[both]) < tolerance_m + tolerance_ratio * z
+        return float(close.mean()), coverage
+
 
 def align_on_field(field: DistanceField, points_camera: np.ndarray, R: np.ndarray, t: np.ndarray, *,
                    up: np.ndarray | None = None, iterations: int = 10,

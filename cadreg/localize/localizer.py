@@ -543,6 +543,8 @@ class Localizer:
                                               len(refined), refined[0][0])
                     candidates[len(refined):] = [c for c in candidates[len(refined):] if all(c is not t[2] for t in twins)]
             candidates.extend(t[2] for t in twins)
+            if id(refined[0][1]) not in renders:  # every contender was left unrefined (it saw through the map)
+                renders[id(refined[0][1])] = scan.view.render(self.field, refined[0][1].T_map_camera)[0]
             has_rival, margin, rivals = self._view_rivals(refined + twins, renders, candidates, scan)
             diag.notes.append(f"refined {len(refined)} of the best poses, view agreement "
                               + ", ".join(f"{r[0]:.3f}" for r in refined)
@@ -568,8 +570,15 @@ class Localizer:
         _, out, winner, see = refined[0]
         fitness, rmse = self.maps_at(out.T_map_camera, center_camera).refine_map.fitness(
             transform_points(out.T_map_camera, scan.check_xyz), inlier_m=rc.inlier_m)
-        agreement, coverage = (1.0, 1.0) if scan.zbuf is None else self.maps_at(
-            out.T_map_camera, center_camera).view_check.compare_depth(out.T_map_camera, scan.zbuf, scan.K, scan.check_xyz)
+        if scan.view is not None:
+            # In a building, along the frame's rays through the whole map: a region's map holds its neighbours
+            # only 3 m out, and a view over the low walls of a composed building reaches farther.
+            agreement, coverage = scan.view.shared(renders[id(out)])
+        elif scan.zbuf is None:
+            agreement, coverage = 1.0, 1.0
+        else:
+            agreement, coverage = self.maps_at(out.T_map_camera, center_camera).view_check.compare_depth(
+                out.T_map_camera, scan.zbuf, scan.K, scan.check_xyz)
         return Choice(winner, out, margin, has_rival, fitness, rmse, center_camera, roi_frame_points, see, agreement,
                       coverage, rivals)
 
