@@ -102,3 +102,15 @@ def test_no_poses_and_no_points_leave_the_poses_as_they_are(field) -> None:
     assert np.allclose(R, np.eye(3)) and np.allclose(t, 0)
     R, t = align_on_field(field, np.ones((5, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)))
     assert R.shape == (0, 3, 3)
+
+
+def test_shared_rays_give_the_depth_agreement_and_the_map_coverage(field, view_and_pose) -> None:
+    frame, T = view_and_pose
+    view = FieldView(frame, grid=(40, 30))
+    agreement, coverage = view.shared(view.render(field, T)[0])
+    assert agreement > 0.8 and coverage > 0.9
+    # a map that shows nothing along the rays says nothing against the pose, and covers none of the frame
+    assert view.shared(np.full(len(view), np.inf)) == (1.0, 0.0)
+    # the map everywhere 20 cm nearer than measured: covered, and disagreeing
+    agreement, coverage = view.shared(view.measured - 0.2)
+    assert agreement == 0.0 and coverage == 1.0
