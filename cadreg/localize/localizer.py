@@ -406,8 +406,9 @@ class Localizer:
                 # A client's pose prior is one more hypothesis, checked like the others (never trusted blindly).
                 candidates += self._align(_single(prior), source, scan, origin="prior")
         best = max((c.score for c in candidates), default=0.0)
-        weak = best < (fb.min_graph_fitness if scan.view is None else self.config.regions.min_view_agreement)
-        if fb.enabled and weak and not self._best_agrees_along_rays(candidates, scan, diag):
+        # Below this the graph's best is weak: its coarse fitness, or in a building its view agreement.
+        enough = fb.min_graph_fitness if scan.view is None else self.config.regions.min_view_agreement
+        if fb.enabled and best < enough and not self._best_agrees_along_rays(candidates, scan, diag):
             with timer("fallback"):
                 rooms = self._candidate_regions(candidates)
                 for name in FALLBACKS:
@@ -420,7 +421,7 @@ class Localizer:
                         candidates += [c for c in self._align(found, source, scan, origin=f"fallback:{name}")
                                        if all(self._distinct(c.T_map_camera, g.T_map_camera) for g in candidates)]
                         best = max([best] + [c.score for c in candidates])
-                        if best >= (fb.min_graph_fitness if scan.view is None else self.config.regions.min_view_agreement):
+                        if best >= enough:
                             break
         # Stable: among equal scores the graph's order (its ranking) stands.
         candidates = sorted(candidates, key=lambda c: -c.score)
@@ -647,8 +648,7 @@ class Localizer:
             R, t = align_on_field(self.field, scan.score_xyz, T[low, :3, :3], T[low, :3, 3],
                                   up=None if scan.floor is None else self.up,
                                   iterations=TWIN_ALIGN_ITERATIONS, reach_m=TWIN_ALIGN_REACH_M)
-            aligned = np.tile(np.eye(4), (len(low), 1, 1))
-            aligned[:, :3, :3], aligned[:, :3, 3] = R, t
+            aligned = _stack_poses(R, t)
             again = scan.view.render(self.field, aligned)
             better = scan.view.agreement(again) > score[low]
             T[low[better]], rendered[low[better]] = aligned[better], again[better]
@@ -926,7 +926,6 @@ class Localizer:
             hyp = hyp.take(np.array(keep, dtype=np.int64))
         notes.append(f"label-free search: {len(yaws)} yaws, {stats.nodes} nodes, best leaf {stats.best:.2f}"
                      + (" (node cap reached)" if stats.capped else ""))
-        scan.search_capped = scan.search_capped or stats.capped
         return hyp if len(hyp) else None
 
     def _search_boxes(self, scan: Scan, R_level_map: np.ndarray, rooms: list[Region]) -> list[np.ndarray | None]:
@@ -959,8 +958,7 @@ class Localizer:
             return [self._candidate(hyp, i, T, self._agreement_score(T, scan), origin) for i, T in enumerate(poses)]
         R, t = align_on_field(self.field, scan.score_xyz, hyp.R, hyp.t, up=None if scan.floor is None else self.up,
                               iterations=FIELD_ALIGN_ITERATIONS, reach_m=FIELD_ALIGN_REACH_M)
-        T = np.tile(np.eye(4), (len(hyp), 1, 1))
-        T[:, :3, :3], T[:, :3, 3] = R, t
+        T = _stack_poses(R, t)
         rendered = scan.view.render(self.field, T)
         score = scan.view.agreement(rendered)
         return [self._candidate(hyp, i, T[i], float(score[i]), origin, rendered[i]) for i in range(len(hyp))]
@@ -1011,6 +1009,13 @@ def _voxel_budget(points: FramePoints, voxel_m: float, budget: int) -> FramePoin
             voxel_m *= VOXEL_GROWTH
             sparse = voxel_downsample(points, voxel_m)
     return sparse
+
+
+def _stack_poses(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(h, 3, 3) rotations and (h, 3) translations -> (h, 4, 4) poses."""
+    T = np.tile(np.eye(4), (len(R), 1, 1))
+    T[:, :3, :3], T[:, :3, 3] = R, t
+    return T
 
 
 def _single(T_map_camera: np.ndarray) -> Hypotheses:

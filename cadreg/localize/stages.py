@@ -67,7 +67,6 @@ class Scan:
     center_camera: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.5]))  # centroid of `points`
     search: SearchRegion | None = None  # the client's search region (Frame.search_region)
     unverified: list[Hypothesis] = field(default_factory=list)  # tied rooms beyond RegionConfig.max_verified
-    search_capped: bool = False  # the label-free search stopped at its node cap (LabelFreeConfig.max_nodes)
     view: FieldView | None = None
 
 

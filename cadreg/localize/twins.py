@@ -78,7 +78,7 @@ class RoomTwins:
             return None
         pa, pb, ca, cb = self._level[na], self._level[nb], self._cls[na], self._cls[nb]
         i, j = np.triu_indices(len(na), 1)
-        k, m = np.nonzero(np.ones((len(nb), len(nb)), dtype=bool) & ~np.eye(len(nb), dtype=bool))
+        k, m = np.nonzero(~np.eye(len(nb), dtype=bool))  # ordered pairs of b's objects
         da = np.linalg.norm(pa[j, :2] - pa[i, :2], axis=1)
         db = np.linalg.norm(pb[m, :2] - pb[k, :2], axis=1)
         ok = ((ca[i][:, None] == cb[k][None]) & (ca[j][:, None] == cb[m][None])
