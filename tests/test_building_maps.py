@@ -108,6 +108,20 @@ def test_region_structures_are_bounded_by_the_cache(twin_rooms_dir: Path, twin_s
     assert len(loc.maps.cached()) == 1
 
 
+def test_a_room_refines_against_crops_until_a_second_frame_comes_to_it(twin_rooms_dir: Path, twin_shared_view) -> None:
+    frame, _ = twin_shared_view
+    loc = Localizer.from_site(Site.load(twin_rooms_dir))
+    in_a = replace(frame, search_region=SearchRegion(region_ids=("a",)))
+    first = loc.localize(in_a)
+    a = loc.maps.index(loc.maps.regions[0])
+    # the first frame's refinements cropped the map around the frame: no whole target was built or kept
+    assert a.refine_map.crop_fine_target and a.refine_map._sg_fine is None
+    second = loc.localize(in_a)
+    assert not a.refine_map.crop_fine_target and a.refine_map._sg_fine is not None
+    assert first.status == second.status == Status.OK
+    assert np.allclose(first.T_map_camera, second.T_map_camera, atol=1e-3)
+
+
 def test_site_json_describes_the_field(twin_rooms_dir: Path) -> None:
     meta = json.loads((twin_rooms_dir / "site.json").read_text())
     assert "field.npy" in meta["files"] and meta["field"]["shape"] == list(np.load(twin_rooms_dir / "field.npy").shape)

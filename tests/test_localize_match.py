@@ -42,6 +42,23 @@ def test_gravity_pairs_recover_the_pose_and_sim_prefers_it() -> None:
     assert list(hyp.assignment[best]) == seen
 
 
+def test_each_object_is_assigned_the_nearest_node_of_its_class_within_the_radius() -> None:
+    g = _graph()
+    rng = np.random.default_rng(3)
+    scan = rng.uniform([-2, -2, 0.5], [2, 2, 3.5], (5, 3))
+    scan_cls = np.array([0, 1, 2, 0, 3])  # class 3: no node of it in the map
+    R = Rotation.random(400, random_state=4).as_matrix()
+    hyp = Hypotheses(R, rng.uniform([0, 0, 0], [6, 5, 2], (400, 3)), np.zeros((400, 2), dtype=np.int64))
+    score_graph(hyp, scan, scan_cls, g, match_radius_m=0.8)
+    placed = np.einsum("hij,nj->hni", hyp.R, scan) + hyp.t[:, None]
+    d = np.linalg.norm(placed[:, :, None] - g.centroid[None, None], axis=-1)
+    d[:, scan_cls[:, None] != g.cls[None, :]] = np.inf
+    brute = np.where(d.min(axis=2) < 0.8, d.argmin(axis=2), -1)
+    assert (brute >= 0).sum() > 20 and (brute == -1).sum() > 20  # both cases occur
+    assert np.array_equal(hyp.assignment, brute)
+    assert np.all(hyp.assignment[:, 4] == -1)
+
+
 def test_single_object_yaw_sweep_and_floor_height() -> None:
     g = _graph()
     T = _true_pose()

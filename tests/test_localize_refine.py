@@ -47,6 +47,26 @@ def test_methods_recover_a_perturbed_pose(scene_and_frame, method: str) -> None:
         assert np.all(np.linalg.eigvalsh(out.covariance) > 0)
 
 
+def test_a_cropped_fine_target_refines_as_the_whole_map_does(scene_and_frame) -> None:
+    scene, frame, T, rmap = scene_and_frame
+    pts = frame_to_points(frame)
+    site = scene.site
+    cropping = RefineMap(site.map.points, site.map.colors / 255.0, site.map.class_index, crop_fine_target=True)
+    T0 = _perturbed(T, seed=5, t_m=0.08, r_deg=3.0)
+    a = cropping.refine(pts, T0, method="small_gicp").T_map_camera
+    b = rmap.refine(pts, T0, method="small_gicp").T_map_camera
+    te, re_ = pose_errors(a, b)
+    assert te < 1e-3 and re_ < 0.05, (te, re_)
+    # The crop holds the map around the placed frame only, and is not kept; a map that no longer crops builds its
+    # whole target, kept.
+    placed = transform_points(T, pts.xyz)
+    around = cropping.fine_target_around(placed, 0.3)
+    assert around is not cropping.fine_target_around(placed, 0.3)
+    cropping.crop_fine_target = False
+    whole = cropping.fine_target_around(placed, 0.3)
+    assert around[0].size() < 0.8 * whole[0].size() and cropping.fine_target_around(placed, 0.3) is whole
+
+
 def test_color_gicp_agrees_with_small_gicp(scene_and_frame) -> None:
     _, frame, T, rmap = scene_and_frame
     pts = frame_to_points(frame)

@@ -48,6 +48,8 @@ from .tracking import Tracked, TrackState, track_frame
 # drop the hopeless ones, three times cheaper than the full check of those kept.
 SCREEN_SHARE = 3
 MIN_SCREEN_POINTS = 20
+# A building's first look at its graph hypotheses keeps this many times what the screen keeps (`_hypotheses`).
+FIRST_LOOK_WIDER = 4
 # Cheapest first. FPFH + RANSAC runs only when the label-free search could not (no up direction): it costs
 # ten times more and, knowing nothing of gravity, is no better where the search finds nothing.
 FALLBACKS = ("bbs", "fpfh-ransac")
@@ -80,6 +82,11 @@ TWIN_ALIGN_REACH_M = (0.15, 0.06)
 # A copy's pose goes on to the alignment and the render when the frame's points fit the field there at most this
 # much worse than at the answer (MatchConfig.score_tau_m's soft inlier share).
 TWIN_SCREEN_MARGIN = 0.15
+# The twin check's first look at every copy takes every TWIN_THIN_STEP-th ray of every TWIN_THIN_STEP-th row; a
+# copy is rendered in full when that look puts it within the ambiguity margin plus this slack of the answer (432
+# rays: a few hundredths of sampling noise).
+TWIN_THIN_STEP = 2
+TWIN_THIN_SLACK = 0.1
 # Flat-surface normals sampled for the yaw candidates of the label-free search when the up estimate gave none.
 YAW_NORMAL_POINTS = 1000
 # An object's top is the 98th percentile of its points along up: the highest 2 % are mixed pixels and noise.
@@ -211,6 +218,7 @@ class Localizer:
         Raises InvalidFrame for a frame that cannot be registered, InvalidArgument for an unknown method.
         """
         method, top_k = self._check_request(frame, method, top_k)
+        self.maps.next_frame()
         diag = Diagnostics(site_id=self.site.site_id, bundle_version=self.site.version)
         timer = StageTimer(diag.stage_ms, progress)
         scan = self._scan(frame, diag, timer)
@@ -289,6 +297,13 @@ class Localizer:
         centroids = np.array([c.centroid for c in scan.clusters])
         classes = np.array([c.cls for c in scan.clusters])
         screen_xyz = scan.score_xyz[: max(MIN_SCREEN_POINTS, len(scan.score_xyz) // SCREEN_SHARE)]
+        if len(self.maps) > 1:
+            # A building's graph gives 30-150 k hypotheses (every node of a class, every yaw), and the screen's
+            # gathers from its field took 50-430 ms a frame at 100 rooms: a first look with a quarter of the
+            # points keeps FIRST_LOOK_WIDER times as many as the screen will for the full one.
+            first = score_poses(self.field, screen_xyz[: max(MIN_SCREEN_POINTS, len(screen_xyz) // 4)], hyp.R, hyp.t,
+                                tau_m=mc.score_tau_m)
+            hyp = hyp.take(self._screened(hyp, first, wider=FIRST_LOOK_WIDER))
         screen = score_poses(self.field, screen_xyz, hyp.R, hyp.t, tau_m=mc.score_tau_m)
         hyp = hyp.take(self._screened(hyp, screen))
         score_graph(hyp, centroids, classes, self.graph, match_radius_m=mc.match_radius_m,
@@ -315,19 +330,20 @@ class Localizer:
         node = hyp.seed[:, 1]
         return np.where(node >= 0, self.node_region[np.maximum(node, 0)], -1)
 
-    def _screened(self, hyp: Hypotheses, screen: np.ndarray) -> np.ndarray:
+    def _screened(self, hyp: Hypotheses, screen: np.ndarray, *, wider: int = 1) -> np.ndarray:
         """Indices of the hypotheses kept after the quick screen: the MatchConfig.screen_keep best and, in a
         building, also the RegionConfig.screen_per_region best of every region, so that a room the screen's few
-        points rank a little lower (repeated rooms tie) still has its hypotheses scored."""
+        points rank a little lower (repeated rooms tie) still has its hypotheses scored; `wider` times as many of
+        each for a first look."""
         order = np.argsort(-screen)
-        keep = order[: self.config.match.screen_keep]
+        keep = order[: wider * self.config.match.screen_keep]
         if len(self.maps) == 1:
             return keep
         region = self._seed_regions(hyp)[order]
         by_region = np.argsort(region, kind="stable")  # positions in `order`, grouped by region, best first
         start = np.searchsorted(region[by_region], region[by_region], side="left")
         in_region_rank = np.arange(len(by_region)) - start
-        per_region = order[by_region[in_region_rank < self.config.regions.screen_per_region]]
+        per_region = order[by_region[in_region_rank < wider * self.config.regions.screen_per_region]]
         return np.union1d(keep, per_region)
 
     def _region_candidates(self, hyp: Hypotheses, rank: np.ndarray, region: np.ndarray, *,
@@ -530,6 +546,14 @@ class Localizer:
             self._report_refined(refined, candidates)
             twins = self._twin_views(scan, refined[0][1].T_map_camera, center_camera, candidates, renders, len(refined),
                                      refined[0][0])
+            for s_r, o_r, _, _ in refined[1:]:
+                # A contender the answer cannot be told from: the copies of its view are looked at too. The truth's
+                # room may be a copy of the runner-up's room-relative view, not of the answer's (a room lacking
+                # a chair the frame sees shows the right view a little worse than another room a wrong one).
+                if refined[0][0] - s_r < mc.ambiguity_margin and self._distinct(o_r.T_map_camera, refined[0][1].T_map_camera):
+                    more = self._twin_views(scan, o_r.T_map_camera, center_camera, candidates, renders, len(refined),
+                                            refined[0][0])
+                    twins += [t for t in more if all(self._distinct(t[1].T_map_camera, u[1].T_map_camera) for u in twins)]
             if twins and max(t[0] for t in twins) > refined[0][0]:
                 # A copy of the winner's room shows the frame better: it is refined too, and may win; a new winner's
                 # own copies are then looked at as well.
@@ -637,8 +661,12 @@ class Localizer:
         assignment = candidates[0].assignment
         candidates[refined:] = [c for c in candidates[refined:] if all(self._distinct(c.T_map_camera, T) for T in moved)]
         T = np.array(moved)
-        rendered = scan.view.render(self.field, T)
-        score = scan.view.agreement(rendered)
+        # Each copy is first looked at along a quarter of the rays (a 100-room building has 99 copies, and a full
+        # render costs 2 ms a pose): only the copies that may show the frame about as well as the answer are
+        # rendered in full. Those that cannot are no rival (two views alike enough to be twins agree with the
+        # frame within a few hundredths of each other) and are not listed.
+        coarse = scan.view.thinned(TWIN_THIN_STEP)
+        score = coarse.agreement(coarse.render(self.field, T))
         # A moved pose that shows the frame less well than the answer may only be a little off (real copies are
         # never placed exactly): it is pulled onto the field, and kept there when that shows the frame better.
         # The copies of a composed building are exact, and the field's alignment, good to a centimetre or two,
@@ -649,10 +677,15 @@ class Localizer:
                                   up=None if scan.floor is None else self.up,
                                   iterations=TWIN_ALIGN_ITERATIONS, reach_m=TWIN_ALIGN_REACH_M)
             aligned = _stack_poses(R, t)
-            again = scan.view.render(self.field, aligned)
-            better = scan.view.agreement(again) > score[low]
-            T[low[better]], rendered[low[better]] = aligned[better], again[better]
-            score = scan.view.agreement(rendered)
+            again = coarse.agreement(coarse.render(self.field, aligned))
+            better = again > score[low]
+            T[low[better]], score[low[better]] = aligned[better], again[better]
+        near = np.flatnonzero(score >= view_score - self.config.match.ambiguity_margin - TWIN_THIN_SLACK)
+        if not len(near):
+            return []
+        copies, T = [copies[k] for k in near], T[near]
+        rendered = scan.view.render(self.field, T)
+        score = scan.view.agreement(rendered)
         out = []
         for k, T_k in enumerate(T.copy()):  # one array per pose, shared by its outcome and its candidate
             carried = self.twins.carry(assignment, copies[k][0], copies[k][1])

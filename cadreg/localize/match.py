@@ -14,6 +14,7 @@ from itertools import combinations, permutations
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from ..geometry import kabsch_many, rotation_angle_deg
@@ -35,6 +36,22 @@ class MapGraph:
     centroid: np.ndarray
     extent: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     top: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (k,) highest point of the box along up, metres
+    _by_class: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def nearest_of_class(self, xyz: np.ndarray, cls: int, radius_m: float) -> np.ndarray:
+        """(m,) index of the node of class `cls` nearest each point of xyz ((m, 3), map frame), -1 where none lies
+        within radius_m. A KD-tree per class, made on first use: a building's graph holds hundreds of nodes of a
+        class, and the distances of every hypothesis's objects to every node (h x n x k) took 130 ms a frame of a
+        100-room site."""
+        if cls not in self._by_class:
+            nodes = np.flatnonzero(self.cls == cls)
+            self._by_class[cls] = (nodes, cKDTree(self.centroid[nodes]) if len(nodes) else None)
+        nodes, tree = self._by_class[cls]
+        if tree is None:
+            return np.full(len(xyz), -1, dtype=np.int64)
+        d, k = tree.query(xyz, distance_upper_bound=radius_m)
+        found = np.isfinite(d) & (d < radius_m)
+        return np.where(found, nodes[np.minimum(k, len(nodes) - 1)], -1)
 
     @classmethod
     def from_site(cls, site: Site, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> "MapGraph":
@@ -253,12 +270,11 @@ def score_graph(hyp: Hypotheses, scan_centroid: np.ndarray, scan_cls: np.ndarray
         hyp.assignment = np.full((h, n), -1, dtype=np.int64)
         return
     c_map = np.einsum("hij,nj->hni", hyp.R, scan_centroid) + hyp.t[:, None, :]
-    d = np.linalg.norm(c_map[:, :, None, :] - graph.centroid[None, None], axis=-1)  # (h, n, k)
-    same = scan_cls[:, None] == graph.cls[None, :]
-    d = np.where(same[None], d, np.inf)
-    best = np.argmin(d, axis=2) if graph.centroid.size else np.zeros((h, n), dtype=np.int64)
-    best_d = np.take_along_axis(d, best[..., None], axis=2)[..., 0] if graph.centroid.size else np.full((h, n), np.inf)
-    assign = np.where(best_d < match_radius_m, best, -1)
+    assign = np.full((h, n), -1, dtype=np.int64)
+    for c in np.unique(scan_cls):
+        objects = np.flatnonzero(scan_cls == c)
+        assign[:, objects] = graph.nearest_of_class(c_map[:, objects].reshape(-1, 3), int(c),
+                                                    match_radius_m).reshape(h, len(objects))
     s_v = (assign >= 0).mean(axis=1)
     pairs = [(i, j) for i, j in combinations(range(n), 2)
              if np.linalg.norm(scan_centroid[i] - scan_centroid[j]) <= edge_max_m]

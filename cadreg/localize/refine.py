@@ -22,6 +22,9 @@ REFINE_METHODS = ("color_gicp", "small_gicp", "open3d_colored_icp")
 GICP_NEIGHBORS = 10
 # Fewer frame points than this inside the ROI cannot carry a GICP: refine with the whole frame instead.
 MIN_ROI_POINTS = 100
+# A cropped fine target holds the map points this far around the box of the frame points at their starting pose:
+# the wide pass's correspondences (2.5 x max_correspondence_m) plus what a field-aligned start may still be off.
+CROP_START_OFF_M = 0.5
 
 
 def crop_to_roi(points: FramePoints, radius_m: float,
@@ -68,7 +71,7 @@ class RefineMap:
 
     def __init__(self, xyz: np.ndarray, rgb: np.ndarray, class_index: np.ndarray | None = None, *, fine_voxel_m: float = 0.025, coarse_voxel_m: float = 0.08,
                  color_scales_m: tuple[float, ...] = (0.08, 0.04, 0.02), color_weight_m: float = 0.05,
-                 fitness_voxel_m: float = 0.02) -> None:
+                 fitness_voxel_m: float = 0.02, crop_fine_target: bool = False) -> None:
         self.xyz = np.asarray(xyz, dtype=np.float64)
         self.rgb = np.asarray(rgb, dtype=np.float64)
         self.fine_voxel_m = fine_voxel_m
@@ -80,6 +83,12 @@ class RefineMap:
         self._sg_fine: tuple[small_gicp.PointCloud, small_gicp.KdTree] | None = None
         # The coarse target likewise: a building's candidates are aligned on its distance field, not here.
         self._sg_coarse: tuple[small_gicp.PointCloud, small_gicp.KdTree] | None = None
+        # A building's region map (a room and the 3 m halo of its neighbours) often serves one frame's refinements
+        # before its cache drops it, and the whole fine target cost 200 ms of a 100-room building's frame: while
+        # `crop_fine_target` holds, refinements build a target of the map around the frame instead (a third of
+        # the cost, not kept: `fine_target_around`). The region cache clears it when a second frame comes to
+        # the region (`regions.RegionMaps.index`): a room frames keep coming from gets its whole target, kept.
+        self.crop_fine_target = crop_fine_target
         keep = voxel_indices(self.xyz, fitness_voxel_m)
         self.fit_xyz = self.xyz[keep]
         self._fit_keep = keep
@@ -108,6 +117,18 @@ class RefineMap:
         if self._sg_fine is None:
             self._sg_fine = small_gicp.preprocess_points(self.xyz, self.fine_voxel_m, num_neighbors=GICP_NEIGHBORS)
         return self._sg_fine
+
+    def fine_target_around(self, xyz_map: np.ndarray, margin_m: float) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
+        """small_gicp's fine target for frame points placed at xyz_map ((n, 3), map frame): the whole map's when it is
+        built or this map does not crop (`crop_fine_target`), else one of the map points within margin_m of their
+        box (not kept)."""
+        if self._sg_fine is not None or not self.crop_fine_target or len(xyz_map) == 0:
+            return self.fine_target()
+        lo, hi = xyz_map.min(axis=0) - margin_m, xyz_map.max(axis=0) + margin_m
+        inside = np.all((self.xyz >= lo) & (self.xyz <= hi), axis=1)
+        if np.count_nonzero(inside) < MIN_ROI_POINTS:
+            return self.fine_target()
+        return small_gicp.preprocess_points(self.xyz[inside], self.fine_voxel_m, num_neighbors=GICP_NEIGHBORS)
 
     def coarse_target(self) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
         """small_gicp's map at coarse_voxel_m and its KD-tree."""
@@ -190,11 +211,12 @@ class RefineMap:
         T_init = np.asarray(init_T_map_camera, dtype=np.float64)
         if method == "small_gicp":
             src, _ = small_gicp.preprocess_points(points.xyz, source_voxel_m, num_neighbors=GICP_NEIGHBORS)
+            placed = points.xyz @ T_init[:3, :3].T + T_init[:3, 3]
+            target, tree = self.fine_target_around(placed, 2.5 * max_correspondence_m + CROP_START_OFF_M)
             T = T_init
             # Wide then narrow correspondences: the wide pass pulls in a start some centimetres off, the narrow
             # one keeps stray points out of the final estimate.
             for corr in (2.5 * max_correspondence_m, max_correspondence_m):
-                target, tree = self.fine_target()
                 res = small_gicp.align(target, src, tree, init_T_target_source=T,
                                        registration_type="GICP", max_correspondence_distance=corr,
                                        num_threads=1, max_iterations=max_iterations, translation_epsilon=epsilon,
