@@ -87,6 +87,8 @@ TWIN_SCREEN_MARGIN = 0.15
 # rays: a few hundredths of sampling noise).
 TWIN_THIN_STEP = 2
 TWIN_THIN_SLACK = 0.1
+# Copies that show the frame better than the answer are refined, best first, at most this many a frame.
+TWIN_PROMOTIONS = 3
 # Flat-surface normals sampled for the yaw candidates of the label-free search when the up estimate gave none.
 YAW_NORMAL_POINTS = 1000
 # An object's top is the 98th percentile of its points along up: the highest 2 % are mixed pixels and noise.
@@ -554,9 +556,12 @@ class Localizer:
                     more = self._twin_views(scan, o_r.T_map_camera, center_camera, candidates, renders, len(refined),
                                             refined[0][0])
                     twins += [t for t in more if all(self._distinct(t[1].T_map_camera, u[1].T_map_camera) for u in twins)]
-            if twins and max(t[0] for t in twins) > refined[0][0]:
-                # A copy of the winner's room shows the frame better: it is refined too, and may win; a new winner's
-                # own copies are then looked at as well.
+            for _ in range(TWIN_PROMOTIONS):
+                if not twins or max(t[0] for t in twins) <= refined[0][0]:
+                    break
+                # A copy of the winner's room shows the frame better: it is refined too, and may win (when its
+                # refinement leaves it below the winner, the next copy that shows the frame better is tried); a new
+                # winner's own copies are then looked at as well.
                 promoted = max(twins, key=lambda t: t[0])
                 twins.remove(promoted)
                 refined.append(refine(promoted[2]))
@@ -564,8 +569,10 @@ class Localizer:
                 self._report_refined(refined, candidates)
                 if refined[0][2] is promoted[2]:
                     candidates.extend(t[2] for t in twins)
-                    twins += self._twin_views(scan, refined[0][1].T_map_camera, center_camera, candidates, renders,
-                                              len(refined), refined[0][0])
+                    more = self._twin_views(scan, refined[0][1].T_map_camera, center_camera, candidates, renders,
+                                            len(refined), refined[0][0])
+                    # a copy seen from the new winner replaces the same copy seen from an earlier pose
+                    twins = [t for t in twins if all(self._distinct(t[1].T_map_camera, u[1].T_map_camera) for u in more)] + more
                     candidates[len(refined):] = [c for c in candidates[len(refined):] if all(c is not t[2] for t in twins)]
             candidates.extend(t[2] for t in twins)
             if id(refined[0][1]) not in renders:  # every contender was left unrefined (it saw through the map)
