@@ -63,6 +63,21 @@ def test_two_renders_are_compared_ray_by_ray_and_an_empty_view_shows_nothing(fie
     assert view.agreement(r[2:], r[2])[0] == 1.0  # neither shows anything: nothing disagrees
 
 
+def test_a_thinned_view_traces_every_other_ray_of_every_other_row(field, view_and_pose) -> None:
+    frame, T = view_and_pose
+    view = FieldView(frame, grid=(40, 30))
+    thin = view.thinned(2)
+    assert thin.shape == (15, 20) and len(thin) == 300 and view.shape == (30, 40) and len(view) == 1200
+    full = view.render(field, T)[0].reshape(30, 40)
+    assert np.array_equal(thin.render(field, T)[0], full[::2, ::2].ravel())
+    assert np.array_equal(thin.measured, view.measured.reshape(30, 40)[::2, ::2].ravel())
+    # the agreement of a quarter of the rays stays close to the whole view's, right pose and wrong
+    T_off = T.copy()
+    T_off[:3, 3] += T[:3, 0] * 0.2
+    for pose in (T, T_off):
+        assert abs(thin.agreement(thin.render(field, pose))[0] - view.agreement(view.render(field, pose))[0]) < 0.05
+
+
 def test_the_sensor_range_bounds_what_is_measured_and_rendered(field, view_and_pose) -> None:
     frame, T = view_and_pose
     short = FieldView(frame, grid=(40, 30), max_depth_m=1.0)

@@ -552,10 +552,12 @@ class Localizer:
                 # A contender the answer cannot be told from: the copies of its view are looked at too. The truth's
                 # room may be a copy of the runner-up's room-relative view, not of the answer's (a room lacking
                 # a chair the frame sees shows the right view a little worse than another room a wrong one).
-                if refined[0][0] - s_r < mc.ambiguity_margin and self._distinct(o_r.T_map_camera, refined[0][1].T_map_camera):
-                    more = self._twin_views(scan, o_r.T_map_camera, center_camera, candidates, renders, len(refined),
-                                            refined[0][0])
-                    twins += [t for t in more if all(self._distinct(t[1].T_map_camera, u[1].T_map_camera) for u in twins)]
+                if refined[0][0] - s_r >= mc.ambiguity_margin or not self._distinct(o_r.T_map_camera,
+                                                                                     refined[0][1].T_map_camera):
+                    continue
+                more = self._twin_views(scan, o_r.T_map_camera, center_camera, candidates, renders, len(refined),
+                                        refined[0][0])
+                twins += [t for t in more if all(self._distinct(t[1].T_map_camera, u[1].T_map_camera) for u in twins)]
             for _ in range(TWIN_PROMOTIONS):
                 if not twins or max(t[0] for t in twins) <= refined[0][0]:
                     break
@@ -572,7 +574,8 @@ class Localizer:
                     more = self._twin_views(scan, refined[0][1].T_map_camera, center_camera, candidates, renders,
                                             len(refined), refined[0][0])
                     # a copy seen from the new winner replaces the same copy seen from an earlier pose
-                    twins = [t for t in twins if all(self._distinct(t[1].T_map_camera, u[1].T_map_camera) for u in more)] + more
+                    twins = [t for t in twins
+                             if all(self._distinct(t[1].T_map_camera, u[1].T_map_camera) for u in more)] + more
                     candidates[len(refined):] = [c for c in candidates[len(refined):] if all(c is not t[2] for t in twins)]
             candidates.extend(t[2] for t in twins)
             if id(refined[0][1]) not in renders:  # every contender was left unrefined (it saw through the map)

@@ -14,6 +14,7 @@ import small_gicp
 from scipy.spatial import cKDTree
 
 from ..errors import InvalidArgument
+from ..geometry import transform_points
 from .color_gicp import ColorGicpTarget, color_gicp, prepare_cloud, rgb_to_lab
 from .points import FramePoints, voxel_indices
 
@@ -118,7 +119,8 @@ class RefineMap:
             self._sg_fine = small_gicp.preprocess_points(self.xyz, self.fine_voxel_m, num_neighbors=GICP_NEIGHBORS)
         return self._sg_fine
 
-    def fine_target_around(self, xyz_map: np.ndarray, margin_m: float) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
+    def fine_target_around(self, xyz_map: np.ndarray,
+                           margin_m: float) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
         """small_gicp's fine target for frame points placed at xyz_map ((n, 3), map frame): the whole map's when it is
         built or this map does not crop (`crop_fine_target`), else one of the map points within margin_m of their
         box (not kept)."""
@@ -211,8 +213,8 @@ class RefineMap:
         T_init = np.asarray(init_T_map_camera, dtype=np.float64)
         if method == "small_gicp":
             src, _ = small_gicp.preprocess_points(points.xyz, source_voxel_m, num_neighbors=GICP_NEIGHBORS)
-            placed = points.xyz @ T_init[:3, :3].T + T_init[:3, 3]
-            target, tree = self.fine_target_around(placed, 2.5 * max_correspondence_m + CROP_START_OFF_M)
+            target, tree = self.fine_target_around(transform_points(T_init, points.xyz),
+                                                   2.5 * max_correspondence_m + CROP_START_OFF_M)
             T = T_init
             # Wide then narrow correspondences: the wide pass pulls in a start some centimetres off, the narrow
             # one keeps stray points out of the final estimate.
