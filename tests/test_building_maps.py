@@ -122,6 +122,21 @@ def test_a_room_refines_against_crops_until_a_second_frame_comes_to_it(twin_room
     assert np.allclose(first.T_map_camera, second.T_map_camera, atol=1e-3)
 
 
+def test_a_buildings_label_free_search_keeps_the_regions_node_budget(twin_rooms_dir: Path, twin_shared_view) -> None:
+    frame, _ = twin_shared_view
+    site = Site.load(twin_rooms_dir)
+
+    def search_note(label_free_nodes: int, building_nodes: int) -> str:
+        config = LocalizeConfig(label_free=LabelFreeConfig(max_nodes=label_free_nodes),
+                                regions=RegionConfig(search_max_nodes=building_nodes))
+        notes = Localizer.from_site(site, config).localize(replace(frame, labels=None)).diagnostics.notes
+        return next(n for n in notes if n.startswith("label-free search"))
+
+    # the building's budget (regions.search_max_nodes) bounds the search, not the one-room one (label_free.max_nodes)
+    assert "node cap reached" in search_note(100_000, 10)
+    assert "node cap reached" not in search_note(10, 100_000)
+
+
 def test_site_json_describes_the_field(twin_rooms_dir: Path) -> None:
     meta = json.loads((twin_rooms_dir / "site.json").read_text())
     assert "field.npy" in meta["files"] and meta["field"]["shape"] == list(np.load(twin_rooms_dir / "field.npy").shape)

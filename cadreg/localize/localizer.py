@@ -944,8 +944,9 @@ class Localizer:
             z_level = self.floor_height_m + floor.height_m  # heights along up are the level frame's z
             z_range = (z_level - 2 * lf.voxel_m, z_level + 2 * lf.voxel_m)
         points_level = scan.down.xyz[pick] @ R_up.T
+        max_nodes = lf.max_nodes if len(self.maps) == 1 else self.config.regions.search_max_nodes
         found = [pyr.search(points_level, yaws, z_range_level=z_range, box_level=box, keep_ratio=lf.keep_ratio,
-                            max_nodes=lf.max_nodes) for box in self._search_boxes(scan, pyr.R_level_map, rooms)]
+                            max_nodes=max_nodes) for box in self._search_boxes(scan, pyr.R_level_map, rooms)]
         poses = np.concatenate([f[0] for f in found])
         scores = np.concatenate([f[1] for f in found])
         order = np.argsort(-scores, kind="stable")
