@@ -31,6 +31,9 @@ class EnhanceConfig(_Section):
     cad_sample_spacing_m: float = Field(0.01, gt=0, description="mean spacing of points sampled on CAD surfaces")
     color_transfer_k: int = Field(4, ge=1, description="removed raw points averaged per CAD point for its colour")
     raw_voxel_m: float = Field(0.01, ge=0, description="voxel down-sampling of the raw scan before enhancement (0 = off)")
+    sample_edge_m: float = Field(0.1, ge=0, description="a scan mesh's triangles with an edge longer than this get "
+                                 "points sampled on them (a decimated mesh leaves the map sparse; 0 = off)")
+    sample_spacing_m: float = Field(0.015, gt=0, description="mean spacing of the points sampled on those triangles")
 
 
 class GraphConfig(_Section):
