@@ -37,6 +37,12 @@ def test_large_triangles_get_points_with_their_colour_normal_and_nearest_label()
     assert gaps.max() < 0.06
 
 
+def test_the_samples_are_bounded_whatever_the_triangles_area() -> None:
+    huge = _square(1000.0)  # a square kilometre: 4.4 billion samples at 1.5 cm
+    out = sample_large_triangles(huge, min_edge_m=0.1, spacing_m=0.015, max_samples=5000)
+    assert len(out.points) == 4 + 5000
+
+
 def test_a_mesh_of_small_triangles_comes_back_as_it_is() -> None:
     scan = _square(0.05)
     assert sample_large_triangles(scan, min_edge_m=0.1, spacing_m=0.02) is scan

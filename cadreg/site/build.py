@@ -39,6 +39,11 @@ Progress = Callable[[int, int], None]
 log = logging.getLogger("cadreg.site")
 
 
+# Points sampled on a scan mesh's large triangles at most (`sample_large_triangles`): 10 M take about 2 GB while they
+# are made, and cover 2250 m² of triangles at the default 1.5 cm spacing.
+MAX_TRIANGLE_SAMPLES = 10_000_000
+
+
 def _stage(progress: Progress | None, base: int, span: int, total: int) -> Progress | None:
     """Map a stage's own (done, of) onto the build's overall 0..total scale."""
     if progress is None:
@@ -269,14 +274,17 @@ def _auto_cad(
     return annotated + found, report
 
 
-def sample_large_triangles(scan: ScanPoints, *, min_edge_m: float, spacing_m: float, seed: int = 0) -> ScanPoints:
+def sample_large_triangles(scan: ScanPoints, *, min_edge_m: float, spacing_m: float, seed: int = 0,
+                           max_samples: int = MAX_TRIANGLE_SAMPLES) -> ScanPoints:
     """The scan with points added on its triangles that have an edge longer than min_edge_m, about one per
     spacing_m² of their area, each with its triangle's colour and normal interpolated and the label of its nearest
     corner. A mesh decimated to large triangles (Replica's office0: 25 k vertices over 100 m², edges up to 0.4 m)
     leaves a map of its vertices sparse, where the distance field (3 cm cells) and GICP need a surface every few
-    centimetres: on renders of office0 without labels, 52 % of the frames were placed against its vertices, 84 %
+    centimetres: on renders of office0 without labels, 52 % of the frames were placed against its vertices, 85 %
     against them and these samples. A scan whose triangles are all smaller comes back as it is (ScanNet's meshes:
-    edges under 9 cm, vertices every 2-3 cm). trimesh samples the triangles; numpy interpolates what they carry."""
+    edges under 9 cm, vertices every 2-3 cm). At most max_samples are added (a mesh of a whole building gets them
+    spread thinner, and a malformed one with huge triangles cannot exhaust memory). trimesh samples the triangles;
+    numpy interpolates what they carry."""
     if scan.faces is None or not len(scan.faces) or min_edge_m <= 0:
         return scan
     import trimesh
@@ -288,7 +296,7 @@ def sample_large_triangles(scan: ScanPoints, *, min_edge_m: float, spacing_m: fl
     if not len(large):
         return scan
     mesh = trimesh.Trimesh(vertices=v, faces=large, process=False)
-    count = int(np.ceil(mesh.area / spacing_m ** 2))
+    count = int(min(np.ceil(mesh.area / spacing_m ** 2), max_samples))
     xyz, face, w = trimesh.sample.sample_surface(mesh, count, return_barycentric=True, seed=seed)
     corners = large[face]  # (n, 3) vertex indices of each sample's triangle
     colors = np.einsum("nk,nkc->nc", w, scan.colors[corners].astype(np.float64))
