@@ -49,9 +49,8 @@ class MapGraph:
         nodes, tree = self._by_class[cls]
         if tree is None:
             return np.full(len(xyz), -1, dtype=np.int64)
-        d, k = tree.query(xyz, distance_upper_bound=radius_m)
-        found = np.isfinite(d) & (d < radius_m)
-        return np.where(found, nodes[np.minimum(k, len(nodes) - 1)], -1)
+        d, k = tree.query(xyz, distance_upper_bound=radius_m)  # none within: d = inf, k = len(nodes)
+        return np.where(d < radius_m, nodes[np.minimum(k, len(nodes) - 1)], -1)
 
     @classmethod
     def from_site(cls, site: Site, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> "MapGraph":
