@@ -15,6 +15,7 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 SCENE0470 = SHARED_DATA / "scannet-scene0470_00"
 REDKITCHEN = SHARED_DATA / "7scenes-redkitchen" / "frames"
+THREEDMATCH = SHARED_DATA / "3dmatch-sample" / "3dmatch" / "seq-01"
 
 
 @pytest.fixture(scope="session")
@@ -27,6 +28,12 @@ def scene0470_dir() -> Path:
 def redkitchen_dir() -> Path:
     assert REDKITCHEN.is_dir(), f"real data missing: {REDKITCHEN}"
     return REDKITCHEN
+
+
+@pytest.fixture(scope="session")
+def threedmatch_dir() -> Path:
+    assert THREEDMATCH.is_dir(), f"real data missing: {THREEDMATCH}"
+    return THREEDMATCH
 
 
 @pytest.fixture(scope="session")

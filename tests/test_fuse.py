@@ -17,7 +17,9 @@ from cadreg.geometry import make_T, pose_errors, transform_points
 from cadreg.io.frames import FramesWriter, RecordedFrames
 from cadreg.render import LabelledMesh, render_frames
 from cadreg.site.bundle import Site
-from cadreg.site.fuse import color_in_depth_camera, fuse_frames, map_accuracy, pose_offset, pose_offset_by_window
+from cadreg.localize.localizer import Localizer
+from cadreg.site.fuse import (color_in_depth_camera, fuse_frames, fuse_site, map_accuracy, pose_offset,
+                              pose_offset_by_window)
 
 
 def median_distance_to_map(map_points: np.ndarray, frames: RecordedFrames, indices) -> float:
@@ -172,3 +174,24 @@ def test_redkitchen_map_from_250_frames(redkitchen_dir: Path, tmp_path: Path) ->
     frames = RecordedFrames.open(redkitchen_dir)
     median = median_distance_to_map(site.map.points, frames, range(250, 500, 5))
     assert median < 0.03, median
+
+
+@pytest.mark.realdata
+def test_a_site_fused_from_one_frame_of_a_new_room_states_its_up_and_places_it(threedmatch_dir: Path,
+                                                                               tmp_path: Path) -> None:
+    """A lounge recorded with a structured-light sensor (3DMatch/SUN3D), its world y up: one frame fuses to a map
+    (the TSDF's weight threshold is kept under the frames fused), the site states its up from the frame's own
+    surfaces, and that frame, without labels, is placed on the map. Judged by the map's normals alone, the
+    map was z up (the wall and floor normals are all perpendicular to z) and no frame was placed."""
+    frames = RecordedFrames.open(threedmatch_dir)
+    site = fuse_site(frames, [116], site_id="lounge")
+    up = site.up
+    assert up is not None and np.degrees(np.arccos(up @ [0.0, 1.0, 0.0])) < 5.0
+    site.save(tmp_path / "lounge")
+    loaded = Site.load(tmp_path / "lounge")
+    np.testing.assert_allclose(loaded.up, up)
+    frame, T_map_camera = frames.load(116)
+    result = Localizer.from_site(loaded).localize(frame)
+    assert result.status.value == "ok"
+    t_err, r_err = pose_errors(result.T_map_camera, T_map_camera)
+    assert t_err < 0.05 and r_err < 5.0

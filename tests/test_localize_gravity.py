@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from cadreg.localize.gravity import estimate_floor, estimate_up_from_normals, fit_plane, map_floor_height
+from cadreg.localize.gravity import estimate_floor, estimate_up_from_normals, fit_plane, map_floor_height, map_up_axis
 
 
 def _room_points(rng, R_camera_map, t_camera_map):
@@ -114,3 +114,23 @@ def test_up_from_a_real_kinect_frame_whose_floor_is_far(redkitchen_dir) -> None:
         fl = estimate_up_from_normals(voxel_downsample(frame_to_points(frame), 0.03).xyz)
         assert fl is not None, i
         assert _angle_deg(fl.up_camera, T[:3, :3].T @ up_world) < 5.0, i
+
+
+def test_map_up_with_the_cameras_prior_is_not_held_to_z() -> None:
+    """A map in its first camera's frame, floor facing +y, with three times as many normals spread over the
+    horizontal directions (walls, furniture, the depth steps of far surfaces): all of them, the floor's included,
+    are perpendicular to z, which scores best. With the cameras' rough up as the prior, the floor's axis wins
+    and faces the prior's way."""
+    rng = np.random.default_rng(5)
+    floor = np.tile([0.0, 1.0, 0.0], (1000, 1))
+    angle = rng.uniform(0, 2 * np.pi, 3000)
+    spread = np.column_stack([np.cos(angle), np.sin(angle), np.zeros(3000)])
+    normals = np.vstack([floor, spread]) + rng.normal(0, 0.01, (4000, 3))
+    assert np.allclose(map_up_axis(normals), [0, 0, 1])  # from the normals alone: wrong for this map
+    camera_up = np.array([-0.31, 0.93, -0.19])  # a camera pitched and rolled by some 20 degrees
+    assert np.allclose(map_up_axis(normals, prior=camera_up), [0, 1, 0])
+    # the prior picks the sign: a map whose floor normals face -y, cameras held that way up
+    assert np.allclose(map_up_axis(-normals, prior=-camera_up), [0, -1, 0])
+    # a prior with no surface direction in its cone (a map of one wall) stands as it is
+    wall = np.tile([1.0, 0.0, 0.0], (500, 1))
+    assert np.allclose(map_up_axis(wall, prior=camera_up), camera_up / np.linalg.norm(camera_up))

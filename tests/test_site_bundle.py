@@ -181,3 +181,19 @@ def test_read_manifest_checks_without_parsing(small_site, tmp_path, monkeypatch)
     with pytest.raises(BundleIntegrityError, match="raw.ply: sha256 does not match"):
         Site.read_manifest(tmp_path / "b")
     assert Site.read_manifest(tmp_path / "b", verify=False)["version"] == small_site.version
+
+
+def test_a_stated_up_is_read_back_and_a_malformed_one_refused(small_site, tmp_path):
+    assert small_site.up is None  # a site built from a scan leaves its up to the localizer
+    small_site.manifest["up"] = [0.0, 2.0, 0.0]
+    small_site.save(tmp_path / "b")
+    np.testing.assert_allclose(Site.load(tmp_path / "b").up, [0.0, 1.0, 0.0])
+    for bad in ([0.0, 0.0], [0.0, 0.0, 0.0], "up", [1.0, float("nan"), 0.0]):
+        d = tmp_path / f"bad{len(list(tmp_path.iterdir()))}"
+        shutil.copytree(tmp_path / "b", d)
+        meta = json.loads((d / "site.json").read_text())
+        meta["up"] = bad
+        (d / "site.json").write_text(json.dumps(meta))
+        with pytest.raises(InvalidFileError, match="site.json.*'up'"):
+            Site.load(d)
+    small_site.manifest.pop("up")

@@ -101,6 +101,7 @@ def site_summary(site) -> dict:
         "built_at": site.manifest.get("built_at"),
         "cad_fit": list(site.manifest.get("enhance", {}).get("cads", [])),
         "regions": [r.info() for r in site.regions],
+        "up": None if site.up is None else [round(float(x), 4) for x in site.up],
     }
 
 
@@ -113,7 +114,8 @@ def _info(args: argparse.Namespace) -> int:
         print(json.dumps(info, indent=1))
         return 0
     print(f"site {info['site_id']}  version {info['version']}  built {info['built_at']}")
-    print(f"map points {info['points']}  raw points {info['raw_points']}  edges {info['edges']}")
+    print(f"map points {info['points']}  raw points {info['raw_points']}  edges {info['edges']}  up "
+          + ("found from the map at load" if info["up"] is None else "({:.3f}, {:.3f}, {:.3f})".format(*info["up"])))
     print(f"{len(info['regions'])} region(s):")
     print(f"{'region':<12} {'objects':>7} {'points':>9}  bounds [m]")
     for r in info["regions"]:

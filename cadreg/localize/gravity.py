@@ -208,8 +208,9 @@ def estimate_up_from_normals(xyz: np.ndarray, *, max_roll_deg: float = 25.0, pit
     return Floor(u, None, "surfaces", int(par[:, best].sum()), floor_guess_m=guess, normals=normals)
 
 
-def map_up_axis(normals: np.ndarray, *, tolerance_deg: float = 5.0, sample: int = 20000, candidates: int = 400,
-                snap_deg: float = 3.0, z_keep_ratio: float = 0.8, seed: int = 0) -> np.ndarray:
+def map_up_axis(normals: np.ndarray, *, prior: np.ndarray | None = None, tolerance_deg: float = 5.0,
+                sample: int = 20000, candidates: int = 400, snap_deg: float = 3.0, z_keep_ratio: float = 0.8,
+                prior_cone_deg: float = 45.0, seed: int = 0) -> np.ndarray:
     """The map's up direction (3,) from its surface normals, for sites that do not state it.
 
     Indoors, the most common normal direction with the most perpendicular ones (walls) is vertical: every
@@ -217,6 +218,12 @@ def map_up_axis(normals: np.ndarray, *, tolerance_deg: float = 5.0, sample: int 
     refined as the mean of its parallel normals. Sign: floors and table tops face up and outnumber ceilings.
     A box-shaped room scores its three axes alike, so +z (the convention of ScanNet, of the demo site and of
     most building scans) is kept unless another direction scores clearly better.
+
+    prior : (3,) a rough up of the map's own (the mean up of the cameras that recorded it, `fuse.cameras_up`):
+    then the best candidate within prior_cone_deg of it wins and faces its way, with no +z preference. A map
+    fused in the frame of its first camera (KinectFusion, SUN3D) has no reason to be z-up, and one fused from a
+    few views of a lounge scored its floor (y) under 1.25x a z axis that every floor and wall normal lay
+    perpendicular to: +z was kept and every frame was placed on its side.
     """
     rng = np.random.default_rng(seed)
     n = np.asarray(normals, dtype=np.float64)
@@ -225,20 +232,30 @@ def map_up_axis(normals: np.ndarray, *, tolerance_deg: float = 5.0, sample: int 
         n = n[rng.choice(len(n), sample, replace=False)]
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     cand = n[rng.choice(len(n), min(candidates, len(n)), replace=False)]
-    cand = np.vstack([[0.0, 0.0, 1.0], cand])
+    if prior is None:
+        cand = np.vstack([[0.0, 0.0, 1.0], cand])
+    else:
+        prior = np.asarray(prior, dtype=np.float64) / np.linalg.norm(prior)
+        cand = np.vstack([prior, cand * np.sign(cand @ prior)[:, None]])
     dots = np.abs(n @ cand.T)
     par = dots > np.cos(np.radians(tolerance_deg))
     perp = dots < np.sin(np.radians(tolerance_deg))
     score = par.sum(axis=0) + 0.5 * perp.sum(axis=0)
+    if prior is not None:
+        score = np.where(cand @ prior >= np.cos(np.radians(prior_cone_deg)), score, -1.0)
     best = int(np.argmax(score))
-    if score[0] >= z_keep_ratio * score[best]:
+    if prior is None and score[0] >= z_keep_ratio * score[best]:
         return np.array([0.0, 0.0, 1.0])
     p = n[par[:, best]]
+    if not len(p):  # the prior itself with no surface along it (a map of walls alone): the prior stands
+        return cand[best]
     p = p * np.sign(p @ cand[best])[:, None]
     u = p.mean(axis=0)
     u /= np.linalg.norm(u)
-    # Sign: most of the horizontal surfaces face up.
-    if np.sum(n[par[:, best]] @ u > 0) < np.sum(n[par[:, best]] @ u < 0):
+    if prior is not None:
+        u = u * np.sign(u @ prior)
+    elif np.sum(n[par[:, best]] @ u > 0) < np.sum(n[par[:, best]] @ u < 0):
+        # Sign: most of the horizontal surfaces face up.
         u = -u
     # Scans are mostly built gravity-aligned (ScanNet: z up); a floor that is not quite flat should not tilt
     # the map by a degree or two, so an axis within snap_deg wins.

@@ -114,6 +114,13 @@ class Site:
         return from_manifest(entries, map_points=len(self.map), raw_points=len(self.raw))
 
     @property
+    def up(self) -> np.ndarray | None:
+        """(3,) unit vector opposite to gravity in the map frame, as site.json states it ("up"), or None: a scan mesh
+        leaves it to the localizer (z up by convention, else found from the map's surfaces); a fused site states
+        it (`fuse.fuse_site`: its frame is its first camera's, with no axis up)."""
+        return _manifest_up(self.manifest)
+
+    @property
     def edge_max_m(self) -> float:
         """δ of this site's graph (its build parameters): scan graphs must use the same to be comparable."""
         build = self.manifest.get("build_config", {}).get("graph", {})
@@ -232,7 +239,25 @@ class Site:
                    graph=graph, classes=classes, label_maps=label_maps, mapped_rows=rows, field_grid=stored_field)
         if meta.get("regions"):
             from_manifest(meta["regions"], map_points=len(enhanced), raw_points=len(raw), source=str(meta_path))
+        try:
+            _manifest_up(meta)
+        except ValueError as exc:
+            raise InvalidFileError(meta_path, str(exc)) from None
         return site
+
+
+def _manifest_up(meta: dict[str, Any]) -> np.ndarray | None:
+    """site.json's "up" as a unit (3,) vector, None when absent; ValueError when it is not a non-zero 3-vector."""
+    if meta.get("up") is None:
+        return None
+    try:
+        up = np.asarray(meta["up"], dtype=np.float64).reshape(3)
+    except (TypeError, ValueError):
+        raise ValueError(f"'up' must be 3 numbers, not {meta['up']!r}") from None
+    norm = float(np.linalg.norm(up))
+    if not np.isfinite(norm) or norm < 1e-6:
+        raise ValueError(f"'up' must be a non-zero finite vector, not {meta['up']!r}")
+    return up / norm
 
 
 def _stored_field(root: Path, meta: dict[str, Any]) -> FieldGrid:

@@ -24,11 +24,13 @@ import open3d as o3d
 import open3d.core as o3c
 
 from ..camera import CameraIntrinsics
-from ..config import AutoCadConfig, FuseConfig, SiteBuildConfig
+from ..config import AutoCadConfig, FrameConfig, FuseConfig, SiteBuildConfig
 from ..errors import ConfigError
 from ..frame import Frame
 from ..geometry import invert_T, rotation_angle_deg, transform_points
 from ..io.frames import RecordedFrames
+from ..localize.gravity import estimate_up_from_normals, map_up_axis
+from ..localize.points import frame_to_points, voxel_downsample
 
 Progress = Callable[[int, int], None]
 
@@ -113,7 +115,9 @@ def fuse_frames(
                       config.sdf_trunc_voxels)
         if progress is not None:
             progress(k + 1, total)
-    pcd = vbg.extract_point_cloud(config.weight_threshold)
+    # A surface needs more than weight_threshold frames' worth of integration (Open3D's test is strict); no
+    # surface of fewer frames than that (one frame of a new room) would pass, so it is kept under their number.
+    pcd = vbg.extract_point_cloud(min(config.weight_threshold, len(posed) - 0.5))
     if "positions" not in pcd.point or pcd.point.positions.shape[0] == 0:
         raise ConfigError("TSDF fusion produced no surface points (check poses, depth scale and depth_max_m)")
     points = pcd.point.positions.numpy().astype(np.float32)
@@ -228,11 +232,48 @@ def fuse_site(
         },
         "fusion": config.model_dump(),
     }
-    return site_from_labelled_points(
+    site = site_from_labelled_points(
         cloud.points, cloud.colors, cloud.normals, cloud.labels, label_set=cloud.label_set if cloud.labels is not None
         else "nyu40", site_id=site_id, inputs=inputs, config=build_config, progress=_build_progress,
         cad_root=cad_root, auto_cad=auto_cad,
     )
+    # The map's frame is the recording's (often its first camera's), with no axis up: the site states its up.
+    site.manifest["up"] = [float(x) for x in fused_up(frames, indices, cloud.normals)]
+    return site
+
+
+def fused_up(frames: RecordedFrames, indices: Sequence[int], normals: np.ndarray, *, frames_used: int = 30,
+             agree_deg: float = 10.0) -> np.ndarray:
+    """(3,) the up of a map fused from `frames` at their poses (map frame).
+
+    Each of up to `frames_used` frames spread over `indices` finds its own up from its flat surfaces, as a query
+    frame does (`estimate_up_from_normals` on the 3 cm grid), put into the map by its pose; the mean of the
+    largest group within agree_deg of one another is the map's up. The fused surface's own normals are no match
+    for that: fused from few views of a structured-light sensor, far floors keep the depth's steps, whose normals
+    face the camera (a map fused from one frame of a lounge came out 16 degrees off). Frames that find no up leave
+    it to those normals, with the cameras' mean up as the prior (`map_up_axis`)."""
+    posed = [(i, T) for i in indices if (T := frames.pose(i)) is not None]
+    if not posed:
+        raise ConfigError("none of the selected frames has a pose: fusion needs T_map_camera per frame")
+    fc = FrameConfig()
+    ups = []
+    for i, T_map_camera in posed[::max(1, len(posed) // frames_used)]:
+        frame, _ = frames.load(i)
+        points = frame_to_points(frame, pixel_stride=fc.pixel_stride, min_depth_m=fc.min_depth_m,
+                                 max_depth_m=fc.max_depth_m)
+        floor = estimate_up_from_normals(voxel_downsample(points, fc.voxel_size_m).xyz)
+        if floor is not None:
+            ups.append(T_map_camera[:3, :3] @ floor.up_camera)
+    if ups:
+        ups = np.array(ups)
+        agree = (ups @ ups.T) > np.cos(np.radians(agree_deg))
+        group = ups[agree[int(np.argmax(agree.sum(axis=1)))]]
+        up = group.mean(axis=0)
+        return up / np.linalg.norm(up)
+    prior = np.mean([-T[:3, 1] for _, T in posed], axis=0)
+    if np.linalg.norm(prior) < 1e-6:
+        raise ConfigError("the recorded cameras' up directions cancel out: cannot tell the map's up")
+    return map_up_axis(normals, prior=prior)
 
 
 def frame_points_in_map(frames: RecordedFrames, i: int) -> np.ndarray:
