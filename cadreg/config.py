@@ -170,6 +170,12 @@ class MatchConfig(_Section):
     max_pose_std_m: float = Field(0.004, gt=0, description="a pose the geometry alone found (not the graph) whose "
                                   "covariance leaves it a standard deviation above this along some direction is "
                                   "uncertain: the frame's geometry (one wall, a floor and a wall) does not pin it")
+    slide_probe_m: float = Field(0.25, gt=0, description="a pose the geometry alone found is moved this far along the "
+                                 "two directions the frame's surfaces constrain least (`Localizer._slides`)")
+    slide_fitness_ratio: float = Field(0.99, gt=0, le=1, description="moved there, a frame that keeps this share of "
+                                       "its fitness ...")
+    slide_agreement_drop: float = Field(0.01, ge=0, le=1, description="... and loses no more than this of its depth "
+                                        "agreement fits as well there: the pose slides, and is uncertain")
     refine_points: int = Field(1500, ge=100, description="frame points (after the refinement's voxel grid) one fine "
                                "refinement uses at most: its cost is bounded by points × iterations × contenders")
     distinct_translation_m: float = Field(0.3, gt=0)

@@ -310,3 +310,26 @@ def test_only_a_pose_the_geometry_alone_found_is_held_to_the_slide_limit(scene) 
             assert any("pose std" in n for n in geometric.diagnostics.notes)
             return
     pytest.fail("no view gave an ok graph answer and an ok label-free one")
+
+
+def test_a_close_view_of_a_bare_wall_slides_and_a_view_of_the_room_does_not(scene, localizer) -> None:
+    """`Localizer._slides`: 60 cm from a wall, the frame sees one plane, which fits as well 25 cm along it (its
+    fitness and depth agreement kept): such a pose is not claimed. A view of the floor, walls and objects loses
+    its fit when moved so far."""
+    from cadreg.localize.stages import StageTimer
+    from cadreg.result import Diagnostics
+
+    def scan_of(frame):
+        diag = Diagnostics(site_id="s", bundle_version="v")
+        return localizer._scan(frame, diag, StageTimer(diag.stage_ms))
+
+    # the wall at y = 0 (x 0-5 m, z 0-2.6 m), looked at level from 0.6 m at mid-height
+    T_wall = look_pose(np.array([2.5, 0.6, 1.3]), -np.pi / 2, 0.0)
+    wall = render_frame(scene, T_wall, intrinsics=K, depth_noise_m=0.0015, seed=1)
+    seen = wall.depth > 0
+    assert seen.mean() > 0.9 and set(np.unique(wall.labels[seen]).tolist()) == {1}  # the wall alone
+    scan = scan_of(wall)
+    assert localizer._slides(scan, T_wall, scan.center_camera)
+    frame, T = _views(scene, 1, seed=3, min_objects=3)[0]
+    scan = scan_of(frame)
+    assert not localizer._slides(scan, T, scan.center_camera)
