@@ -164,7 +164,7 @@ class MatchConfig(_Section):
     max_see_through: float = Field(0.1, ge=0, le=1, description="a pose at which more than this share of the map "
                                    "in view lies in front of the frame's depth (space the sensor saw empty) is uncertain")
     min_ok_confidence: float = Field(0.5, ge=0, le=1, description="below this confidence an answer is uncertain, not ok")
-    min_depth_agreement: float = Field(0.7, ge=0, le=1, description="a pose at which the frame's depth agrees with "
+    min_depth_agreement: float = Field(0.75, ge=0, le=1, description="a pose at which the frame's depth agrees with "
                                        "the map's surfaces in less than this share of the view the two share (render "
                                        "and compare, `ViewCheck.depth_agreement`) is uncertain")
     max_pose_std_m: float = Field(0.004, gt=0, description="a pose the geometry alone found (not the graph) whose "

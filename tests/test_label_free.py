@@ -95,8 +95,9 @@ def test_a_frame_that_looks_partly_past_the_map_is_claimed_for_what_the_map_cove
                               confident_margin=MC.confident_margin, see_through=ev["see-through"],
                               max_see_through=MC.max_see_through)
 
-        # Held to the fitness itself this right answer was uncertain (0.44-0.47).
-        assert trust_of(ev["fitness"]) < MC.min_ok_confidence <= r.confidence
+        # Held to the fitness itself this right answer lost a quarter and more of its confidence (it was uncertain,
+        # 0.44-0.47, while the see-through check still counted the map's silhouettes).
+        assert trust_of(ev["fitness"]) < 0.8 * r.confidence and MC.min_ok_confidence <= r.confidence
         assert r.confidence == pytest.approx(trust_of(ev["fitness"] / ev["map coverage"]), abs=0.01)
 
 

@@ -33,3 +33,29 @@ def test_score_poses_scores_each_pose_like_one_lookup() -> None:
     for k in range(3):
         assert scores[k] == inlier_score(field.lookup(pts + t[k]), 0.1)
     assert scores[0] > 0.9 and scores[2] == 0.0
+
+
+def test_see_through_counts_map_in_front_of_the_depth_but_not_a_silhouette() -> None:
+    """`ViewCheck.see_through`: map points in front of the measured depth count, except on the far side of a
+    depth edge, where a point on the near surface's rim lands a cell past it as often as not (a building's low
+    walls, a scan's holes)."""
+    from cadreg.camera import CameraIntrinsics
+    from cadreg.localize.score import ViewCheck
+
+    K = CameraIntrinsics(160, 120, 100.0, 100.0, 79.5, 59.5)
+    # Measured: a wall 2 m ahead on the left half of the view, open space 5 m deep on the right half.
+    zbuf = np.full((15, 20), 5.0)
+    zbuf[:, :10] = 2.0
+
+    def points_at(depth: float, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        x, y = (u - K.cx) / K.fx * depth, (v - K.cy) / K.fy * depth
+        return np.column_stack([x, y, np.full(len(u), depth)])
+
+    rng = np.random.default_rng(0)
+    v = rng.uniform(0, 120, 400)
+    # the wall's rim, mapped a few pixels into the first cell of open space: no violation
+    rim = points_at(2.0, rng.uniform(80, 86, 400), v)
+    assert ViewCheck(rim).see_through(np.eye(4), zbuf, K) == 0.0
+    # a map wall 2 m ahead across the open half: the sensor saw through it
+    wall = points_at(2.0, rng.uniform(96, 160, 400), v)
+    assert ViewCheck(wall).see_through(np.eye(4), zbuf, K) > 0.9

@@ -8,7 +8,7 @@ hypotheses per frame stay cheap. scipy's exact Euclidean distance transform does
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import distance_transform_edt
+from scipy.ndimage import distance_transform_edt, minimum_filter
 
 from ..site.bundle import FieldGrid
 from .points import voxel_indices
@@ -255,7 +255,10 @@ class ViewCheck:
         near = (z > 0.2) & (z < max_depth_m)
         p, z = p[near], z[near]
         v, u, inside = self._cells(p, K, cell_px, zbuf.shape)
-        measured = zbuf[v[inside], u[inside]]
+        # Against the nearest depth of the cell and its 8 neighbours: a map point on a silhouette (the top of a
+        # low wall, the rim of a scan's hole) falls a cell to the far side of the depth edge as often as not, and
+        # views across a building's low walls, all edges, saw through 3-5 % of the map at their true pose.
+        measured = minimum_filter(zbuf, size=3, mode="nearest")[v[inside], u[inside]]
         zi = z[inside]
         seen = np.isfinite(measured)
         if seen.sum() < min_points:
