@@ -318,6 +318,9 @@ class RegionConfig(_Section):
     search_max_nodes: int = Field(3000, ge=10, description="the label-free search's nodes kept per level in a "
                                   "building (LabelFreeConfig.max_nodes in one room): a building's search box holds "
                                   "many rooms, and at 1200 the search cut its way past the view's room")
+    object_tiebreak_share: float = Field(0.05, gt=0, le=1, description="poses that look the same along the frame's "
+                                         "rays are told apart by the frame's labelled objects when one explains this "
+                                         "share of the frame's points more than every other (`Localizer._told_by_objects`)")
     halo_m: float = Field(3.0, ge=0, description="a region's refinement map also holds its neighbours' points this "
                           "far outside its box: γ (RefineConfig.roi_radius_m) covers the whole region of interest")
 

@@ -76,3 +76,53 @@ def test_a_copy_the_graph_match_left_out_still_makes_a_shared_view_ambiguous(twi
     assert any(h.region == "a" and near(h.T_map_camera, T_true) for h in r.hypotheses)
     assert any(h.region == "b" and near(h.T_map_camera, T_b @ T_true) for h in r.hypotheses)
     assert any(h.source == "twin" for h in r.hypotheses)
+
+
+@pytest.mark.realdata
+def test_poses_that_look_alike_are_told_apart_by_the_frame_objects(twin_rooms_dir: Path, scene0470_dir: Path,
+                                                                   twin_shared_view, tmp_path: Path) -> None:
+    """`Localizer._told_by_objects`: room "b" copies room "a" without a chair and the bin. A frame of room "a"
+    that sees them, answered in "b" with "a" as a rival that looks the same along its rays, is answered in "a"
+    (the rival refined and put first); the view both rooms show explains as many objects at both poses and
+    keeps its rival."""
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.localize.refine import RefineOutcome
+    from cadreg.localize.stages import Candidate, StageTimer
+    from cadreg.result import Diagnostics, Hypothesis
+    from tracking_rooms import ROOM_B_OFFSET_M, render_turn
+
+    loc = Localizer.from_site(Site.load(twin_rooms_dir))
+    to_b = np.eye(4)
+    to_b[0, 3] = ROOM_B_OFFSET_M
+
+    def scan_of(frame):
+        diag = Diagnostics(site_id="s", bundle_version="v")
+        return loc._scan(frame, diag, StageTimer(diag.stage_ms)), diag
+
+    def entry(T):
+        c = Candidate(T, 0.9, Hypothesis(T, 0.0, 0.0, 0.0, 0.9), np.zeros(0, np.int64))
+        return 0.9, RefineOutcome(T, None, 1, True, "small_gicp"), c, 0.0
+
+    def answered_in_b(frame, T_a):
+        scan, diag = scan_of(frame)
+        in_b, in_a = entry(to_b @ T_a), entry(T_a)
+        refined, candidates = [in_b], [in_b[2], in_a[2]]
+        refine_calls = []
+
+        def refine(c):  # the rival's refinement: its pose is already the true one
+            refine_calls.append(c)
+            return 0.9, in_a[1], c, 0.0
+
+        told = loc._told_by_objects(scan, refined, [in_a[2]], refine, candidates, diag)
+        return told, refined, refine_calls, scan
+
+    frames = render_turn(scene0470_dir / "scene0470_00_vh_clean_2.ply",
+                         scene0470_dir / "scene0470_00_vh_clean_2.labels.ply", tmp_path / "turn", n=2)
+
+    chair_view, T_a = RecordedFrames.open(frames).load(1)  # the chair and the bin only room "a" holds
+    told, refined, refine_calls, scan = answered_in_b(chair_view, T_a)
+    assert loc._objects_explained(scan, T_a) - loc._objects_explained(scan, to_b @ T_a) >= 0.05
+    assert told and len(refine_calls) == 1 and pose_errors(refined[0][1].T_map_camera, T_a)[0] < 1e-9
+    shared, T_shared = twin_shared_view  # the table's corner, which both rooms show
+    told, refined, refine_calls, _ = answered_in_b(shared, T_shared)
+    assert not told and not refine_calls and pose_errors(refined[0][1].T_map_camera, to_b @ T_shared)[0] < 1e-9
