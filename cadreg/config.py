@@ -170,6 +170,9 @@ class MatchConfig(_Section):
     max_pose_std_m: float = Field(0.004, gt=0, description="a pose the geometry alone found (not the graph) whose "
                                   "covariance leaves it a standard deviation above this along some direction is "
                                   "uncertain: the frame's geometry (one wall, a floor and a wall) does not pin it")
+    objects_pin_share: float = Field(0.1, ge=0, le=1, description="a graph answer whose matched objects hold less "
+                                     "than this share of the frame's points is probed for sliding as a pose the "
+                                     "geometry alone found is")
     slide_probe_m: float = Field(0.25, gt=0, description="a pose the geometry alone found is moved this far along the "
                                  "two directions the frame's surfaces constrain least (`Localizer._slides`)")
     slide_fitness_ratio: float = Field(0.99, gt=0, le=1, description="moved there, a frame that keeps this share of "

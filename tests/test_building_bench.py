@@ -266,3 +266,25 @@ def test_views_doc_gives_the_twin_poses() -> None:
     assert np.allclose(truth[3].T_twins[0][:3, 3], [10.5, 0.2, 1.3])
     with pytest.raises(ValueError, match="views.json"):
         views_from_doc({"views": []})
+
+
+@pytest.mark.realdata
+def test_a_room_without_labels_joins_a_labelled_building_as_unlabelled(scene_mesh, scene_nodes) -> None:
+    """A Replica or fused room (a mesh without labels) beside labelled rooms: its vertices read label 0 and no
+    instance; rooms of another label set are refused."""
+    from dataclasses import replace
+
+    from cadreg.errors import ConfigError
+    from cadreg.render.building import building_mesh, building_rooms
+
+    plain = replace(scene_mesh, labels=None, instances=None)
+    rooms = building_rooms(_three_rooms_layout("r"), {"r": scene_mesh}, {"r": scene_nodes})
+    rooms[1] = replace(rooms[1], mesh=plain)
+    building = building_mesh(rooms)
+    nv = len(scene_mesh.vertices)
+    assert np.array_equal(building.labels[:nv], scene_mesh.labels)
+    assert not building.labels[nv:2 * nv].any() and np.all(building.instances[nv:2 * nv] == -1)
+    assert building.n_instances == 2 * scene_mesh.n_instances
+    rooms[1] = replace(rooms[1], mesh=replace(scene_mesh, label_set="ade20k"))
+    with pytest.raises(ConfigError, match="share a label set"):
+        building_mesh(rooms)

@@ -116,6 +116,11 @@ class Localizer:
         self.maps = maps
         region_of = {n: k for k, r in enumerate(maps.regions) for n in r.nodes}
         self.node_region = np.array([region_of.get(i, -1) for i in graph.ids], dtype=np.int64)
+        # Each region's floor along up, as the bundle states it (a building's rooms need not share one), else the
+        # map's; and under each graph node, its region's.
+        self.region_floor_m = np.array([floor_height_m if r.floor_m is None else r.floor_m for r in maps.regions])
+        self.node_floor_m = np.where(self.node_region >= 0, self.region_floor_m[np.maximum(self.node_region, 0)],
+                                     floor_height_m)
         self._fpfh: FpfhRansac | None = None
         self._whole: RefineMap | None = None
         self._pyramid: tuple[GridPyramid, np.ndarray | None] | None = None
@@ -395,7 +400,8 @@ class Localizer:
         mc = self.config.match
         if floor is not None:
             R_level = rotation_between(floor.up_camera, self.up)
-            camera_up_m = None if floor.height_m is None else self.floor_height_m + floor.height_m
+            # The camera's height along up over each node's own floor (a building's rooms need not share one).
+            camera_up_m = None if floor.height_m is None else self.node_floor_m + floor.height_m
             # Few objects: little to go on, so search single-object offsets densely as well.
             offset = mc.offset_step_m if len(clusters) <= mc.dense_below_objects else 0.0
             up_camera = R_level.T @ self.up
@@ -864,6 +870,7 @@ class Localizer:
         # graph answers could slide 0.44-0.54 cm.
         std = pose_std_m(out.covariance)
         slide = 0.0 if by_objects else std
+
         def trust_for(pose_std: float) -> float:
             return confidence(choice.support, choice.rmse_m, choice.margin, inlier_m=rc.inlier_m,
                               confident_margin=mc.confident_margin, see_through=choice.see_through,
@@ -875,7 +882,12 @@ class Localizer:
                                max_see_through=mc.max_see_through, min_ok_confidence=mc.min_ok_confidence,
                                pose_std=slide, max_pose_std=mc.max_pose_std_m,
                                depth_agreement=choice.depth_agreement, min_depth_agreement=mc.min_depth_agreement)
-        slides = status == Status.OK and not by_objects and self._slides(scan, T, choice.center_camera)
+        # The slide probe (`_slides`) holds a graph answer too when its matched objects are a small part of the
+        # frame: slivers of a door and a whiteboard under a view over a low wall into a neighbour's curtain were
+        # answered `ok` 38 cm and 11 degrees off in a composed building.
+        matched = sum(len(scan.clusters[i].index) for i, a in enumerate(winner.assignment) if a >= 0) if by_objects else 0
+        pinned = matched >= mc.objects_pin_share * len(scan.down)
+        slides = status == Status.OK and not pinned and self._slides(scan, T, choice.center_camera)
         if slides:
             # As unpinned as the covariance's limit twice over: uncertain, its confidence halved. (Only an answer
             # that would be `ok`: an ambiguous one lists its rivals, and claims none of them either.)
@@ -1041,15 +1053,18 @@ class Localizer:
         pick = rng.choice(len(scan.down), min(lf.points, len(scan.down)), replace=False)
         normals = floor.normals if floor.normals is not None else planar_normals(scan.down.xyz, max_points=YAW_NORMAL_POINTS)[1]
         yaws = yaw_candidates(normals @ R_up.T, map_hist, step_deg=lf.yaw_step_deg)
-        z_range = None
-        if floor.source == "floor" and floor.height_m is not None:
-            # A labelled floor gives the camera's height: only a band about it is searched.
-            z_level = self.floor_height_m + floor.height_m  # heights along up are the level frame's z
-            z_range = (z_level - 2 * lf.voxel_m, z_level + 2 * lf.voxel_m)
+        labelled_floor = floor.source == "floor" and floor.height_m is not None
         points_level = scan.down.xyz[pick] @ R_up.T
         max_nodes = lf.max_nodes if len(self.maps) == 1 else self.config.regions.search_max_nodes
-        found = [pyr.search(points_level, yaws, z_range_level=z_range, box_level=box, keep_ratio=lf.keep_ratio,
-                            max_nodes=max_nodes) for box in self._search_boxes(scan, pyr.R_level_map, rooms)]
+        found = []
+        for box, floor_m in self._search_boxes(scan, pyr.R_level_map, rooms):
+            z_range = None
+            if labelled_floor and floor_m is not None:
+                # A labelled floor gives the camera's height: only a band about it is searched.
+                z_level = floor_m + floor.height_m  # heights along up are the level frame's z
+                z_range = (z_level - 2 * lf.voxel_m, z_level + 2 * lf.voxel_m)
+            found.append(pyr.search(points_level, yaws, z_range_level=z_range, box_level=box,
+                                    keep_ratio=lf.keep_ratio, max_nodes=max_nodes))
         poses = np.concatenate([f[0] for f in found])
         scores = np.concatenate([f[1] for f in found])
         order = np.argsort(-scores, kind="stable")
@@ -1075,23 +1090,33 @@ class Localizer:
                      + (" (node cap reached)" if stats.capped else ""))
         return hyp if len(hyp) else None
 
-    def _search_boxes(self, scan: Scan, R_level_map: np.ndarray, rooms: list[Region]) -> list[np.ndarray | None]:
-        """Boxes (level frame, (2, 3) corners) of camera positions the label-free search covers: one per region
-        the client named, or the client's ball; without a search region one per room of `rooms`, or [None] (the
-        whole site) when there are none."""
+    def _search_boxes(self, scan: Scan, R_level_map: np.ndarray,
+                      rooms: list[Region]) -> list[tuple[np.ndarray | None, float | None]]:
+        """(box, floor) of each part of the site the label-free search covers: the box (level frame, (2, 3)
+        corners) of camera positions, or None for the whole site, and the floor height along up under it, None
+        where the regions under it do not share one. One per region the client named, or the client's ball;
+        without a search region one per room of `rooms`, or the whole site when there are none."""
         if scan.search is None and not rooms:
-            return [None]
+            return [(None, self._shared_floor(self.maps.regions))]
         if scan.search is None or scan.search.region_ids:
             chosen = rooms if scan.search is None else scan.search.resolve(self.maps.regions)
-            boxes = [np.stack([r.bounds[0] - CAMERA_MARGIN_M, r.bounds[1] + CAMERA_MARGIN_M]) for r in chosen]
+            boxes = [(np.stack([r.bounds[0] - CAMERA_MARGIN_M, r.bounds[1] + CAMERA_MARGIN_M]), self._shared_floor([r]))
+                     for r in chosen]
         else:
-            boxes = [np.stack([scan.search.center - scan.search.radius_m, scan.search.center + scan.search.radius_m])]
+            ball = np.stack([scan.search.center - scan.search.radius_m, scan.search.center + scan.search.radius_m])
+            boxes = [(ball, self._shared_floor(self.maps.regions))]
         out = []
-        for lo, hi in boxes:
+        for (lo, hi), floor_m in boxes:
             corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
             level = corners @ R_level_map.T
-            out.append(np.stack([level.min(axis=0), level.max(axis=0)]))
+            out.append((np.stack([level.min(axis=0), level.max(axis=0)]), floor_m))
         return out
+
+    def _shared_floor(self, regions: list[Region]) -> float | None:
+        """The floor height along up those regions share (within the label-free search's voxel), else None."""
+        floor_of = dict(zip((r.id for r in self.maps.regions), self.region_floor_m))
+        floors = np.array([floor_of[r.id] for r in regions])
+        return float(np.median(floors)) if np.ptp(floors) <= self.config.label_free.voxel_m else None
 
     def _align(self, hyp: Hypotheses, source: small_gicp.PointCloud, scan: Scan, *,
                origin: str = "graph") -> list[Candidate]:

@@ -139,15 +139,16 @@ def _horizontal(v: np.ndarray, up: np.ndarray) -> np.ndarray:
 
 
 def gravity_hypotheses(scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: MapGraph, *, R_level: np.ndarray,
-                       up: np.ndarray, camera_height_m: float | None, yaw_step_deg: float = 10.0,
+                       up: np.ndarray, camera_height_m: float | np.ndarray | None, yaw_step_deg: float = 10.0,
                        pair_tolerance_m: float = 0.4, min_pair_horizontal_m: float = 0.3,
                        offset_step_m: float = 0.0, max_offset_m: float = 0.5,
                        scan_top: np.ndarray | None = None) -> Hypotheses:
     """4-DoF hypotheses (yaw about `up` + translation) from single objects and object pairs.
 
     scan_centroid : (n, 3) colour-camera frame; scan_cls : (n,) int. R_level : (3, 3) rotation taking the camera's
-    up onto the map's `up` (the unknown yaw is about `up`). camera_height_m : the camera's height above the map
-    floor along `up` when a floor is seen (map floor height already added), else None (height from centroids).
+    up onto the map's `up` (the unknown yaw is about `up`). camera_height_m : the camera's coordinate along `up`
+    when a floor is seen (the map's floor height added to its height above it; (k,) per graph node: the floor of
+    the node's room), else None (height from centroids).
     offset_step_m > 0: single-object hypotheses also try horizontal offsets of the centroid on a grid of this
     step, up to half the node's largest extent (at most max_offset_m): a partly seen large object (a 2 m
     whiteboard) has its visible centroid far from the node's.
@@ -209,8 +210,10 @@ def gravity_hypotheses(scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: M
     if not len(hyp):
         return hyp
     if camera_height_m is not None:
-        # The camera centre is t: put it at the height the floor says, keep its horizontal position.
-        hyp.t = hyp.t - np.outer(hyp.t @ up, up) + camera_height_m * up
+        # The camera centre is t: put it at the height the floor says, keep its horizontal position. Per node: the
+        # camera's height over the floor under the seed's map node.
+        height = np.broadcast_to(np.asarray(camera_height_m, dtype=np.float64), (len(graph.ids),))[hyp.seed[:, 1]]
+        hyp.t = hyp.t - np.outer(hyp.t @ up, up) + np.outer(height, up)
     elif scan_top is not None and len(graph.top):
         by_top = Hypotheses(hyp.R.copy(), hyp.t.copy(), hyp.seed.copy())
         h_top = graph.top[hyp.seed[:, 1]] - scan_top[hyp.seed[:, 0]]

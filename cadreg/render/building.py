@@ -112,12 +112,12 @@ def building_rooms(layout: Layout, meshes: dict[str, LabelledMesh],
 
 def building_mesh(rooms: list[BuildingRoom]) -> LabelledMesh:
     """All rooms' meshes in the building frame as one LabelledMesh; instance ids offset per room so that they stay
-    distinct (−1 stays −1). Rooms must share a label set, and all carry labels or none do."""
-    label_sets = {r.mesh.label_set for r in rooms}
+    distinct (−1 stays −1). Rooms that carry labels must share a label set; a room without (a Replica mesh, a
+    fused room) reads label 0, unlabelled, and no instance, in a building whose other rooms carry them."""
+    labelled = [r for r in rooms if r.mesh.labels is not None]
+    label_sets = {r.mesh.label_set for r in labelled} or {rooms[0].mesh.label_set}
     if len(label_sets) > 1:
         raise ConfigError(f"rooms of one building must share a label set, got {sorted(label_sets)}")
-    if len({r.mesh.labels is None for r in rooms}) > 1:
-        raise ConfigError("some room meshes carry labels and others do not")
     vertices, faces, colors, labels, instances = [], [], [], [], []
     v_offset = i_offset = 0
     for r in rooms:
@@ -125,11 +125,13 @@ def building_mesh(rooms: list[BuildingRoom]) -> LabelledMesh:
         vertices.append(transform_points(r.T_building_room, m.vertices))
         faces.append(m.faces.astype(np.int64) + v_offset)
         colors.append(m.colors)
-        if m.labels is not None:
-            labels.append(m.labels)
+        if labelled:
+            labels.append(m.labels if m.labels is not None else np.zeros(len(m.vertices), dtype=np.uint16))
         if m.instances is not None:
             instances.append(np.where(m.instances >= 0, m.instances + i_offset, -1))
             i_offset += m.n_instances
+        elif labelled:
+            instances.append(np.full(len(m.vertices), -1, dtype=np.int32))
         v_offset += len(m.vertices)
     return LabelledMesh(
         np.concatenate(vertices), np.concatenate(faces), np.concatenate(colors),

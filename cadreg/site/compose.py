@@ -29,6 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from ..errors import ConfigError, InvalidFileError
 from ..geometry import is_rigid, transform_points
+from ..localize.gravity import map_floor_height
 from ..localize.score import building_field
 from ..pointset import PointSet
 from .bundle import Site
@@ -124,6 +125,12 @@ def _moved_node(node: ObjectNode, name: str, T: np.ndarray) -> ObjectNode:
                    box_R=R @ node.box_R)
 
 
+def _floor_height(*clouds: PointSet) -> float:
+    """A room's floor height along z (building frame), from its points and normals (`map_floor_height`)."""
+    both = PointSet.concat([c for c in clouds if len(c)])
+    return map_floor_height(both.points.astype(np.float64), both.normals.astype(np.float64), np.array([0.0, 0.0, 1.0]))
+
+
 def compose_site(layout: Layout, root: str | Path) -> Site:
     """The building site of `layout` (bundle paths relative to `root`). Rooms must share their classes and label
     maps (the same label set and class names): ConfigError otherwise, and for a dropped id a room does not have."""
@@ -152,7 +159,8 @@ def compose_site(layout: Layout, root: str | Path) -> Site:
         nodes += room_nodes
         # Each room is a region; its points are written contiguously, so the region is a slice of each cloud.
         regions.append(region_from_points(r.entry.name, [maps[-1].points, raws[-1].points], [n.id for n in room_nodes],
-                                          (map_at, map_at + len(maps[-1])), (raw_at, raw_at + len(raws[-1]))))
+                                          (map_at, map_at + len(maps[-1])), (raw_at, raw_at + len(raws[-1])),
+                                          floor_m=_floor_height(maps[-1], raws[-1])))
         map_at += len(maps[-1])
         raw_at += len(raws[-1])
     manifest: dict[str, Any] = {

@@ -6,7 +6,7 @@ search structures are per region, and a client may restrict a query to some of t
 stored in site.json under "regions" (`to_manifest` / `from_manifest`)::
 
     {"id": "r003", "bounds": [[x0, y0, z0], [x1, y1, z1]], "nodes": ["r003/cad-1", ...],
-     "map_range": [start, stop], "raw_range": [start, stop]}
+     "map_range": [start, stop], "raw_range": [start, stop], "floor_m": z}
 
 `map_range` / `raw_range` are the region's rows of map.ply / raw.ply: the composer writes each room's points
 contiguously, so a region's points are a slice, read without touching the rest of the map.
@@ -34,7 +34,9 @@ class Region:
 
     id : region name (a composed site's room name). bounds : (2, 3) float64, min and max corners of the axis-aligned
     box of its points, map frame, metres. nodes : graph node ids inside it. map_range, raw_range : [start, stop)
-    rows of the site's map and raw clouds.
+    rows of the site's map and raw clouds. floor_m : the height of its floor along z (a composed building's rooms
+    are z up), metres, or None when the bundle does not say (one-room sites, buildings composed before it was
+    stored): rooms of a building need not share a floor (storeys; scans whose floors lie at other heights).
     """
 
     id: str
@@ -42,6 +44,7 @@ class Region:
     nodes: tuple[str, ...]
     map_range: tuple[int, int]
     raw_range: tuple[int, int]
+    floor_m: float | None = None
 
     @property
     def points(self) -> int:
@@ -59,19 +62,22 @@ class Region:
                 "objects": len(self.nodes), "points": self.points}
 
     def to_dict(self) -> dict[str, Any]:
-        return {"id": self.id, "bounds": np.asarray(self.bounds, dtype=float).round(4).tolist(),
-                "nodes": list(self.nodes), "points": self.points,
-                "map_range": list(self.map_range), "raw_range": list(self.raw_range)}
+        out = {"id": self.id, "bounds": np.asarray(self.bounds, dtype=float).round(4).tolist(),
+               "nodes": list(self.nodes), "points": self.points,
+               "map_range": list(self.map_range), "raw_range": list(self.raw_range)}
+        if self.floor_m is not None:
+            out["floor_m"] = round(float(self.floor_m), 4)
+        return out
 
 
 def region_from_points(region_id: str, xyz: list[np.ndarray], nodes: list[str], map_range: tuple[int, int],
-                       raw_range: tuple[int, int]) -> Region:
+                       raw_range: tuple[int, int], floor_m: float | None = None) -> Region:
     """A region whose bounds are those of the point arrays `xyz` ((n_i, 3) float, map frame; some may be empty)."""
     parts = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in xyz]
     every = np.concatenate(parts) if parts else np.zeros((0, 3))
     bounds = np.stack([every.min(axis=0), every.max(axis=0)]) if len(every) else np.zeros((2, 3))
     return Region(region_id, bounds, tuple(nodes), (int(map_range[0]), int(map_range[1])),
-                  (int(raw_range[0]), int(raw_range[1])))
+                  (int(raw_range[0]), int(raw_range[1])), None if floor_m is None else float(floor_m))
 
 
 def to_manifest(regions: list[Region]) -> list[dict[str, Any]]:
@@ -93,7 +99,11 @@ def from_manifest(entries: Any, *, map_points: int, raw_points: int, source: str
             r0, r1 = (int(x) for x in e["raw_range"])
             if not (0 <= m0 <= m1 <= map_points and 0 <= r0 <= r1 <= raw_points):
                 raise ValueError(f"region {e.get('id')!r}: point ranges outside the map")
-            out.append(Region(str(e["id"]), bounds, tuple(str(n) for n in e["nodes"]), (m0, m1), (r0, r1)))
+            floor = e.get("floor_m")
+            if floor is not None and not np.isfinite(float(floor)):
+                raise ValueError(f"region {e.get('id')!r}: floor_m must be a finite number")
+            out.append(Region(str(e["id"]), bounds, tuple(str(n) for n in e["nodes"]), (m0, m1), (r0, r1),
+                              None if floor is None else float(floor)))
     except (KeyError, TypeError, ValueError) as exc:
         raise InvalidFileError(source, f"malformed regions: {exc}") from None
     ids = [r.id for r in out]
