@@ -744,10 +744,11 @@ class Localizer:
         Rooms that copy one another differ in the furniture one of them lacks; the depth along the rays barely
         shows a chair, its label does: in the 100-room building, a labelled unique view was answered in a copy
         (the view agreement tied among 61 rooms) where the true room's pose alone explained all three of the
-        frame's objects (8 % of its points more than any copy). A pose must explain RegionConfig.object_tiebreak_share more of the frame's points than every other:
-        the repeated-view oracle calls views that differ by less than about one small object (3 % of the pixels)
-        the same, and a sliver of a chair at the frame's border, or a partly seen table whose centroid lands 0.6 m
-        from its node, told copies apart by 0.3-4 % (one of them wrongly)."""
+        frame's objects (8 % of its points more than any copy). A pose must explain
+        RegionConfig.object_tiebreak_share more of the frame's points than every other: the repeated-view oracle
+        calls views that differ by less than about one small object (3 % of the pixels) the same, and a sliver of
+        a chair at the frame's border, or a partly seen table whose centroid lands 0.6 m from its node, told
+        copies apart by 0.3-4 % (one of them wrongly)."""
         poses = [refined[0][1].T_map_camera] + [c.T_map_camera for c in rivals]
         explained = [self._objects_explained(scan, T) for T in poses]
         k = int(np.argmax(explained))
@@ -763,9 +764,9 @@ class Localizer:
                 refined.remove(promoted)
             refined.insert(0, promoted)
             self._report_refined(refined, candidates)
-        diag.notes.append(f"the frame's objects: {100 * explained[k]:.1f} % of its points lie in objects whose map node is "
-                          f"where the answer places them, at most {100 * second:.1f} % at the {len(poses) - 1} other "
-                          "poses that look the same")
+        diag.notes.append(f"the frame's objects: {100 * explained[k]:.1f} % of its points lie in objects whose map "
+                          f"node is where the answer places them, at most {100 * second:.1f} % at the "
+                          f"{len(poses) - 1} other poses that look the same")
         return True
 
     def _objects_explained(self, scan: Scan, T_map_camera: np.ndarray) -> float:
@@ -885,8 +886,8 @@ class Localizer:
         # The slide probe (`_slides`) holds a graph answer too when its matched objects are a small part of the
         # frame: slivers of a door and a whiteboard under a view over a low wall into a neighbour's curtain were
         # answered `ok` 38 cm and 11 degrees off in a composed building.
-        matched = sum(len(scan.clusters[i].index) for i, a in enumerate(winner.assignment) if a >= 0) if by_objects else 0
-        pinned = matched >= mc.objects_pin_share * len(scan.down)
+        matched = sum(len(scan.clusters[i].index) for i, a in enumerate(winner.assignment) if a >= 0)
+        pinned = by_objects and matched >= mc.objects_pin_share * len(scan.down)
         slides = status == Status.OK and not pinned and self._slides(scan, T, choice.center_camera)
         if slides:
             # As unpinned as the covariance's limit twice over: uncertain, its confidence halved. (Only an answer
