@@ -46,3 +46,37 @@ def test_each_room_keeps_its_floor_and_a_view_of_the_raised_room_is_placed_there
     # both rooms show it (ambiguous): the pose in the raised room is as right as the one in the other
     for T_true in (T_room_camera, T_b @ T_room_camera):
         assert min(pose_errors(T, T_true)[0] for T in poses) < 0.05
+
+
+@pytest.mark.realdata
+def test_a_room_stating_another_up_is_levelled_by_the_layout_and_refused_unlevelled(scene0470_site_dir: Path,
+                                                                                    tmp_path: Path) -> None:
+    """A fused room's frame is its first camera's: `site layout` turns a bundle whose stated up is not +z so that
+    it is (its footprint measured level), and `site compose` refuses rooms whose ups disagree."""
+    from scipy.spatial.transform import Rotation
+
+    from cadreg.errors import ConfigError
+    from cadreg.geometry import make_T
+    from cadreg.site.compose import Layout, RoomEntry
+    from cadreg.site.layout import LayoutConfig, RoomSource, generate_layout
+
+    T_tilt = make_T(Rotation.from_euler("x", 90, degrees=True).as_matrix(), [0.0, 0.0, 0.0])
+    one = Layout(site_id="tilted", rooms=[RoomEntry(name="t", bundle=str(scene0470_site_dir),
+                                                    T_building_room=T_tilt.tolist())])
+    tilted = compose_site(one, tmp_path)
+    tilted.manifest["up"] = (T_tilt[:3, :3] @ [0.0, 0.0, 1.0]).tolist()  # as a fused site states it
+    tilted.save(tmp_path / "tilted")
+    sources = [RoomSource.from_site("s", str(scene0470_site_dir), Site.load(scene0470_site_dir)),
+               RoomSource.from_site("t", str(tmp_path / "tilted"), Site.load(tmp_path / "tilted"))]
+    assert np.allclose(sources[1].size, sources[0].size, atol=0.01)  # the same footprint, measured level
+    layout = generate_layout(sources, LayoutConfig(rooms=2, seed=0, site_id="b"))
+    T_b = np.array(layout.rooms[1].T_building_room)
+    np.testing.assert_allclose(T_b[:3, :3] @ tilted.up, [0.0, 0.0, 1.0], atol=1e-9)
+    building = compose_site(layout, tmp_path)
+    np.testing.assert_allclose(building.up, [0.0, 0.0, 1.0], atol=1e-6)
+    floors = [r.floor_m for r in building.regions]
+    assert abs(floors[0] - floors[1]) < 0.02
+    unlevelled = Layout(site_id="u", rooms=[layout.rooms[0], RoomEntry(name="t", bundle=str(tmp_path / "tilted"),
+                                                                       T_building_room=np.eye(4).tolist())])
+    with pytest.raises(ConfigError, match="level it with its T_building_room"):
+        compose_site(unlevelled, tmp_path)

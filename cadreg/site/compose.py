@@ -93,6 +93,11 @@ def read_layout(path: str | Path) -> Layout:
         raise ConfigError(f"bad layout {path}: {why}") from None
 
 
+# Rooms of one building must share their up within this (degrees): a fused room placed without levelling would
+# otherwise be searched on its side.
+MAX_UP_SPREAD_DEG = 5.0
+
+
 @dataclass
 class _Room:
     entry: RoomEntry
@@ -125,10 +130,28 @@ def _moved_node(node: ObjectNode, name: str, T: np.ndarray) -> ObjectNode:
                    box_R=R @ node.box_R)
 
 
-def _floor_height(*clouds: PointSet) -> float:
-    """A room's floor height along z (building frame), from its points and normals (`map_floor_height`)."""
+def _floor_height(up: np.ndarray, *clouds: PointSet) -> float:
+    """A room's floor height along the building's up (building frame), from its points and normals
+    (`map_floor_height`)."""
     both = PointSet.concat([c for c in clouds if len(c)])
-    return map_floor_height(both.points.astype(np.float64), both.normals.astype(np.float64), np.array([0.0, 0.0, 1.0]))
+    return map_floor_height(both.points.astype(np.float64), both.normals.astype(np.float64), up)
+
+
+def _building_up(rooms: list["_Room"]) -> np.ndarray:
+    """(3,) the up all rooms share in the building frame: each room's own (`Site.up`; +z for a scan mesh that
+    states none) turned by its T_building_room. ConfigError naming a room whose up lies more than MAX_UP_SPREAD_DEG
+    from the others' mean: a fused room (its frame is its first camera's) placed without levelling."""
+    z = np.array([0.0, 0.0, 1.0])
+    ups = np.array([r.T[:3, :3] @ (z if r.site.up is None else r.site.up) for r in rooms])
+    up = ups.mean(axis=0)
+    up /= np.linalg.norm(up)
+    off = np.degrees(np.arccos(np.clip(ups @ up, -1.0, 1.0)))
+    k = int(np.argmax(off))
+    if off[k] > MAX_UP_SPREAD_DEG:
+        r = rooms[k]
+        raise ConfigError(f"room {r.entry.name!r} ({r.entry.bundle}): its up lies {off[k]:.0f} degrees from the "
+                          "building's; level it with its T_building_room (`cadreg site layout` does)")
+    return up
 
 
 def compose_site(layout: Layout, root: str | Path) -> Site:
@@ -141,6 +164,7 @@ def compose_site(layout: Layout, root: str | Path) -> Site:
         if r.site.classes != first.classes or r.site.label_maps != first.label_maps:
             raise ConfigError(f"room {r.entry.name!r} ({r.entry.bundle}) has other classes or label maps than "
                               f"room {rooms[0].entry.name!r}: rooms of one site must share them")
+    up = _building_up(rooms)
     maps, raws, nodes, regions = [], [], [], []
     map_at = raw_at = 0
     for k, r in enumerate(rooms):
@@ -160,13 +184,15 @@ def compose_site(layout: Layout, root: str | Path) -> Site:
         # Each room is a region; its points are written contiguously, so the region is a slice of each cloud.
         regions.append(region_from_points(r.entry.name, [maps[-1].points, raws[-1].points], [n.id for n in room_nodes],
                                           (map_at, map_at + len(maps[-1])), (raw_at, raw_at + len(raws[-1])),
-                                          floor_m=_floor_height(maps[-1], raws[-1])))
+                                          floor_m=_floor_height(up, maps[-1], raws[-1])))
         map_at += len(maps[-1])
         raw_at += len(raws[-1])
     manifest: dict[str, Any] = {
         key: first.manifest[key] for key in ("build_config",) if key in first.manifest
     }
     manifest["regions"] = to_manifest(regions)
+    if any(r.site.up is not None for r in rooms):
+        manifest["up"] = [float(x) for x in up]
     manifest["inputs"] = {"composed": [{"name": r.entry.name, "bundle": r.entry.bundle, "site_id": r.site.site_id,
                                         "version": r.site.version, "T_building_room": r.entry.T_building_room,
                                         "drop_objects": list(r.entry.drop_objects)} for r in rooms]}

@@ -1,9 +1,10 @@
 """Generate a building layout (LAYOUT.json for `cadreg site compose`) from room bundles: a benchmark building.
 
 Rooms r000, r001, ... fill a near-square grid (ceil(sqrt(N)) columns, row by row). Room k is a copy of source
-bundle k mod len(sources) (cycled, so every source appears as evenly as the count allows), turned about z by a
-random multiple of 90° about the centre of its footprint (the xy box of the bundle's raw points, room frame), and
-placed so that, after turning:
+bundle k mod len(sources) (cycled, so every source appears as evenly as the count allows), levelled (a bundle that
+states an up other than +z, a fused room, is turned so that its up is +z), turned about z by a random multiple of
+90° about the centre of its footprint (the xy box of the bundle's levelled raw points), and placed so that, after
+turning:
 
 - within a row, each room's footprint starts exactly `gap_m` after its left neighbour's ends (x);
 - each row's band (the tallest footprint of the row) starts exactly `gap_m` after the band of the row below (y);
@@ -21,12 +22,13 @@ quarter turn and then the drops (CAD node ids in sorted order): the same seed gi
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from ..errors import ConfigError
+from ..geometry import rotation_between
 from .bundle import Site
 from .compose import Layout, RoomEntry
 
@@ -48,8 +50,9 @@ class RoomSource:
     """A room bundle to copy.
 
     name : the source's name (for reports); bundle : the path written into the layout (relative to the layout file
-    or absolute); footprint_min, footprint_max : (2,) float64 xy box of the room's raw points, room frame, metres;
-    cad_ids : ids of the graph nodes with source "cad", sorted.
+    or absolute); footprint_min, footprint_max : (2,) float64 xy box of the room's raw points, levelled room frame,
+    metres; cad_ids : ids of the graph nodes with source "cad", sorted. R_level : (3, 3) rotation taking the
+    room's up (`Site.up`: a fused room's frame is its first camera's) onto +z; identity for a z-up room.
     """
 
     name: str
@@ -57,14 +60,23 @@ class RoomSource:
     footprint_min: np.ndarray
     footprint_max: np.ndarray
     cad_ids: tuple[str, ...]
+    R_level: np.ndarray = field(default_factory=lambda: np.eye(3))
 
     @classmethod
     def from_site(cls, name: str, bundle: str, site: Site) -> "RoomSource":
-        xy = site.raw.points[:, :2].astype(np.float64)
+        R_level = np.eye(3) if site.up is None else rotation_between(site.up, np.array([0.0, 0.0, 1.0]))
+        xy = (site.raw.points.astype(np.float64) @ R_level.T)[:, :2]
         if len(xy) == 0:
             raise ConfigError(f"room bundle {bundle!r} has no raw points: no footprint to place")
         cad = sorted(n.id for n in site.graph.nodes if n.source == "cad")
-        return cls(name, bundle, xy.min(axis=0), xy.max(axis=0), tuple(cad))
+        return cls(name, bundle, xy.min(axis=0), xy.max(axis=0), tuple(cad), R_level)
+
+    @property
+    def T_level(self) -> np.ndarray:
+        """(4, 4) the levelling rotation as a transform (room frame -> levelled room frame)."""
+        T = np.eye(4)
+        T[:3, :3] = self.R_level
+        return T
 
     @property
     def center(self) -> np.ndarray:
@@ -95,22 +107,23 @@ def turned_size(source: RoomSource, quarter_turns: int) -> np.ndarray:
 
 
 def place_room(source: RoomSource, quarter_turns: int, corner_xy: np.ndarray) -> np.ndarray:
-    """(4, 4) T_building_room turning the room by `quarter_turns`·90° about its footprint centre and putting the
-    turned footprint's min corner at `corner_xy` (building frame, metres)."""
+    """(4, 4) T_building_room levelling the room (its up onto +z), turning it by `quarter_turns`·90° about its
+    footprint centre and putting the turned footprint's min corner at `corner_xy` (building frame, metres)."""
     R = quarter_turn(quarter_turns)
     half = turned_size(source, quarter_turns) / 2.0
     T = np.eye(4)
     T[:3, :3] = R
-    # p_building = R (p_room - c) + corner + half: the footprint centre c lands on the turned box's centre.
+    # p_building = R (p_level - c) + corner + half: the footprint centre c lands on the turned box's centre.
     T[:2, 3] = corner_xy + half - R[:2, :2] @ source.center
-    return T
+    return T @ source.T_level
 
 
 def placed_footprint(source: RoomSource, T_building_room: np.ndarray) -> np.ndarray:
     """(2, 2) [[xmin, ymin], [xmax, ymax]] of the room's footprint corners mapped into the building frame."""
     lo, hi = source.footprint_min, source.footprint_max
     corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [lo[0], hi[1]], [hi[0], hi[1]]])
-    xy = corners @ T_building_room[:2, :2].T + T_building_room[:2, 3]
+    T_place = T_building_room @ source.T_level.T  # the footprint lies in the levelled room frame
+    xy = corners @ T_place[:2, :2].T + T_place[:2, 3]
     return np.stack([xy.min(axis=0), xy.max(axis=0)])
 
 

@@ -34,9 +34,9 @@ class Region:
 
     id : region name (a composed site's room name). bounds : (2, 3) float64, min and max corners of the axis-aligned
     box of its points, map frame, metres. nodes : graph node ids inside it. map_range, raw_range : [start, stop)
-    rows of the site's map and raw clouds. floor_m : the height of its floor along z (a composed building's rooms
-    are z up), metres, or None when the bundle does not say (one-room sites, buildings composed before it was
-    stored): rooms of a building need not share a floor (storeys; scans whose floors lie at other heights).
+    rows of the site's map and raw clouds. floor_m : the height of its floor along the site's up (+z unless the
+    site states another), metres, or None when the bundle does not say (one-room sites, buildings composed
+    before it was stored): rooms of a building need not share a floor (storeys; scans with other floor heights).
     """
 
     id: str
