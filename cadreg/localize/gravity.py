@@ -219,7 +219,7 @@ def map_up_axis(normals: np.ndarray, *, prior: np.ndarray | None = None, toleran
     A box-shaped room scores its three axes alike, so +z (the convention of ScanNet, of the demo site and of
     most building scans) is kept unless another direction scores clearly better.
 
-    prior : (3,) a rough up of the map's own (the mean up of the cameras that recorded it, `fuse.cameras_up`):
+    prior : (3,) a rough up of the map's own (the mean up of the cameras that recorded it, `fuse.fused_up`):
     then the best candidate within prior_cone_deg of it wins and faces its way, with no +z preference. A map
     fused in the frame of its first camera (KinectFusion, SUN3D) has no reason to be z-up, and one fused from a
     few views of a lounge scored its floor (y) under 1.25x a z axis that every floor and wall normal lay
