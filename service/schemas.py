@@ -157,6 +157,8 @@ class RegionInfo(BaseModel):
                     "(null for a bundle built before regions)")
     objects: int = Field(description="graph nodes inside the region")
     points: int = Field(description="map and raw points of the region")
+    floor_m: float | None = Field(None, description="height of the region's floor along the site's up, metres "
+                                  "(a composed building's rooms need not share one); null when the bundle does not say")
 
 
 class SiteInfo(BaseModel):

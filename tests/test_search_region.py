@@ -83,6 +83,7 @@ def test_site_info_lists_regions(twin_rooms_dir: Path, capsys) -> None:
     info = json.loads(capsys.readouterr().out)
     assert [r["id"] for r in info["regions"]] == ["a", "b"]
     assert all(r["objects"] > 0 and r["points"] > 0 and len(r["bounds"]) == 2 for r in info["regions"])
+    assert all(abs(r["floor_m"]) < 0.1 for r in info["regions"])  # both copies stand on the scan's own floor
     assert main(["site", "info", str(twin_rooms_dir)]) == 0
     assert "2 region(s)" in capsys.readouterr().out
 

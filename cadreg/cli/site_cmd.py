@@ -117,10 +117,11 @@ def _info(args: argparse.Namespace) -> int:
     print(f"map points {info['points']}  raw points {info['raw_points']}  edges {info['edges']}  up "
           + ("found from the map at load" if info["up"] is None else "({:.3f}, {:.3f}, {:.3f})".format(*info["up"])))
     print(f"{len(info['regions'])} region(s):")
-    print(f"{'region':<12} {'objects':>7} {'points':>9}  bounds [m]")
+    print(f"{'region':<12} {'objects':>7} {'points':>9} {'floor [m]':>9}  bounds [m]")
     for r in info["regions"]:
         (x0, y0, z0), (x1, y1, z1) = r["bounds"]
-        print(f"{r['id']:<12} {r['objects']:>7} {r['points']:>9}  "
+        floor = "-" if r["floor_m"] is None else f"{r['floor_m']:.2f}"
+        print(f"{r['id']:<12} {r['objects']:>7} {r['points']:>9} {floor:>9}  "
               f"({x0:.2f}, {y0:.2f}, {z0:.2f}) – ({x1:.2f}, {y1:.2f}, {z1:.2f})")
     print(f"{'id':<12} {'class':<16} {'source':<8} {'origin':<10} {'points':>7}  centroid [m]")
     for n in info["nodes"]:

@@ -57,9 +57,11 @@ class Region:
         return np.all((xyz[..., :2] >= lo[:2]) & (xyz[..., :2] <= hi[:2]), axis=-1)
 
     def info(self) -> dict[str, Any]:
-        """What `site info --json` and `GET /v1/sites/{id}` report of the region: {id, bounds, objects, points}."""
+        """What `site info --json` and `GET /v1/sites/{id}` report of the region: {id, bounds, objects, points,
+        floor_m}."""
         return {"id": self.id, "bounds": np.asarray(self.bounds, dtype=float).round(4).tolist(),
-                "objects": len(self.nodes), "points": self.points}
+                "objects": len(self.nodes), "points": self.points,
+                "floor_m": None if self.floor_m is None else round(float(self.floor_m), 4)}
 
     def to_dict(self) -> dict[str, Any]:
         out = {"id": self.id, "bounds": np.asarray(self.bounds, dtype=float).round(4).tolist(),
