@@ -328,8 +328,9 @@ def test_a_close_view_of_a_bare_wall_slides_and_a_view_of_the_room_does_not(scen
     wall = render_frame(scene, T_wall, intrinsics=K, depth_noise_m=0.0015, seed=1)
     seen = wall.depth > 0
     assert seen.mean() > 0.9 and set(np.unique(wall.labels[seen]).tolist()) == {1}  # the wall alone
-    scan = scan_of(wall)
-    assert localizer._slides(scan, T_wall, scan.center_camera)
+    def slides(scan, T):
+        return localizer._slides(scan, T, scan.center_camera, localizer._depth_agreement(T, scan, scan.center_camera))
+
+    assert slides(scan_of(wall), T_wall)
     frame, T = _views(scene, 1, seed=3, min_objects=3)[0]
-    scan = scan_of(frame)
-    assert not localizer._slides(scan, T, scan.center_camera)
+    assert not slides(scan_of(frame), T)

@@ -118,9 +118,9 @@ class Localizer:
         self.node_region = np.array([region_of.get(i, -1) for i in graph.ids], dtype=np.int64)
         # Each region's floor along up, as the bundle states it (a building's rooms need not share one), else the
         # map's; and under each graph node, its region's.
-        self.region_floor_m = np.array([floor_height_m if r.floor_m is None else r.floor_m for r in maps.regions])
-        self.node_floor_m = np.where(self.node_region >= 0, self.region_floor_m[np.maximum(self.node_region, 0)],
-                                     floor_height_m)
+        self.region_floor_m = {r.id: floor_height_m if r.floor_m is None else r.floor_m for r in maps.regions}
+        self.node_floor_m = np.array([self.region_floor_m[maps.regions[k].id] if k >= 0 else floor_height_m
+                                      for k in self.node_region], dtype=np.float64)
         self._fpfh: FpfhRansac | None = None
         self._whole: RefineMap | None = None
         self._pyramid: tuple[GridPyramid, np.ndarray | None] | None = None
@@ -888,7 +888,8 @@ class Localizer:
         # answered `ok` 38 cm and 11 degrees off in a composed building.
         matched = sum(len(scan.clusters[i].index) for i, a in enumerate(winner.assignment) if a >= 0)
         pinned = by_objects and matched >= mc.objects_pin_share * len(scan.down)
-        slides = status == Status.OK and not pinned and self._slides(scan, T, choice.center_camera)
+        slides = status == Status.OK and not pinned and self._slides(scan, T, choice.center_camera,
+                                                                        choice.depth_agreement)
         if slides:
             # As unpinned as the covariance's limit twice over: uncertain, its confidence halved. (Only an answer
             # that would be `ok`: an ambiguous one lists its rivals, and claims none of them either.)
@@ -921,8 +922,10 @@ class Localizer:
         return LocalizationResult(status, T, confidence=trust,
                                   covariance=out.covariance, hypotheses=hypotheses, diagnostics=diag, frame_id=frame_id)
 
-    def _slides(self, scan: Scan, T_map_camera: np.ndarray, center_camera: np.ndarray) -> bool:
+    def _slides(self, scan: Scan, T_map_camera: np.ndarray, center_camera: np.ndarray, agreement: float) -> bool:
         """Whether the frame fits as well slide_probe_m away along the directions its surfaces constrain least.
+        agreement : the frame's depth agreement at T_map_camera (`Choice.depth_agreement`, measured as
+        `_depth_agreement` measures it).
 
         A close view of a curtain, a plain wall or a corner fits anywhere along it, and the refinement's covariance
         does not say so (GICP's plane-shaped covariances make it certain along planes: 0.2-0.3 cm of pose std for
@@ -942,7 +945,6 @@ class Localizer:
         maps = self.maps_at(T_map_camera, center_camera)
         xyz_map = transform_points(T_map_camera, scan.check_xyz)
         fitness, _ = maps.refine_map.fitness(xyz_map, inlier_m=rc.inlier_m)
-        agreement: float | None = None
         for axis in (0, 1):
             for sign in (1.0, -1.0):
                 shift = T_map_camera[:3, :3] @ V[:, axis] * (sign * mc.slide_probe_m)
@@ -951,15 +953,14 @@ class Localizer:
                     continue
                 T_moved = T_map_camera.copy()
                 T_moved[:3, 3] += shift
-                if agreement is None:
-                    agreement = self._depth_agreement(T_map_camera, scan, center_camera)
                 if self._depth_agreement(T_moved, scan, center_camera) >= agreement - mc.slide_agreement_drop:
                     return True
         return False
 
     def _depth_agreement(self, T_map_camera: np.ndarray, scan: Scan, center_camera: np.ndarray) -> float:
-        """How the frame's depth agrees with the map's at a pose, as the answer's is measured (`_refine`): along
-        the frame's rays through the whole map in a building, else on the pose's region map; 1.0 without depth."""
+        """How the frame's depth agrees with the map's at a pose, as the answer's is measured (`_refine`, from the
+        renders and the z-buffer comparison it has at hand): along the frame's rays through the whole map in a
+        building, else on the pose's region map; 1.0 without depth."""
         if scan.view is not None:
             return scan.view.shared(scan.view.render(self.field, T_map_camera)[0])[0]
         if scan.zbuf is None:
@@ -1115,8 +1116,7 @@ class Localizer:
 
     def _shared_floor(self, regions: list[Region]) -> float | None:
         """The floor height along up those regions share (within the label-free search's voxel), else None."""
-        floor_of = dict(zip((r.id for r in self.maps.regions), self.region_floor_m))
-        floors = np.array([floor_of[r.id] for r in regions])
+        floors = np.array([self.region_floor_m[r.id] for r in regions])
         return float(np.median(floors)) if np.ptp(floors) <= self.config.label_free.voxel_m else None
 
     def _align(self, hyp: Hypotheses, source: small_gicp.PointCloud, scan: Scan, *,
