@@ -129,3 +129,26 @@ def test_shared_rays_give_the_depth_agreement_and_the_map_coverage(field, view_a
     # the map everywhere 20 cm nearer than measured: covered, and disagreeing
     agreement, coverage = view.shared(view.measured - 0.2)
     assert agreement == 0.0 and coverage == 1.0
+
+
+def test_a_float_field_and_a_stored_read_only_one_render_and_score_alike(scene, field, view_and_pose) -> None:
+    """The compiled loops (`field_kernels`) read a field built in memory (float32 metres, writable) and a stored one
+    (one byte a cell, a read-only memory map) the same way: renders agree ray by ray and scores to the quantization."""
+    from cadreg.localize.score import score_poses
+
+    floats = DistanceField(scene.site.cloud("both").points, voxel_m=field.voxel_m, margin_m=0.3)
+    stored = DistanceField.from_grid(building_field([scene.site.cloud("both").points]))
+    stored.grid = stored.grid.copy()
+    stored.grid.flags.writeable = False  # as np.load(mmap_mode="r") gives it
+    frame, T = view_and_pose
+    view = FieldView(frame)
+    a, b = view.render(floats, T)[0], view.render(stored, T)[0]
+    both = np.isfinite(a) & np.isfinite(b)
+    assert both.mean() > 0.8 and abs(int(np.isfinite(a).sum()) - int(np.isfinite(b).sum())) <= 0.01 * len(a)
+    assert np.median(np.abs(a[both] - b[both])) < 0.01
+    pts = voxel_downsample(frame_to_points(frame), 0.05).xyz[:300]
+    R = np.stack([T[:3, :3]] * 3)
+    t = T[:3, 3] + np.array([[0.0, 0.0, 0.0], [0.3, 0.3, 0.3], [0.0, 0.0, 3.0]])
+    s_float, s_stored = score_poses(floats, pts, R, t, tau_m=0.1), score_poses(stored, pts, R, t, tau_m=0.1)
+    assert s_float[0] > 0.8 > s_float[1] and s_float[2] == 0.0
+    assert np.allclose(s_float, s_stored, atol=0.05)

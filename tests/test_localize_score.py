@@ -5,6 +5,7 @@ are not finite (a degenerate hypothesis must score zero, not read an arbitrary c
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial import cKDTree
 
 from cadreg.localize.score import DistanceField, inlier_score, score_poses
@@ -31,7 +32,7 @@ def test_score_poses_scores_each_pose_like_one_lookup() -> None:
     t = np.array([[0.0, 0.0, 0.0], [0.02, 0.0, 0.0], [5.0, 5.0, 5.0]])
     scores = score_poses(field, pts, R, t, tau_m=0.1)
     for k in range(3):
-        assert scores[k] == inlier_score(field.lookup(pts + t[k]), 0.1)
+        assert scores[k] == pytest.approx(inlier_score(field.lookup(pts + t[k]), 0.1), abs=1e-6)
     assert scores[0] > 0.9 and scores[2] == 0.0
 
 

@@ -10,8 +10,8 @@ same (the benchmark's repeated-view oracle asks the same of two renders).
 
 The rays are traced through the stored distance field (sphere tracing: a step as long as the field allows, never
 across an occupied cell), so no per-room structure is built and a view into any room of the building, or across
-rooms, costs the same. Written here: no library traces a quantized, memory-mapped distance grid; numpy does it for
-all rays of all poses at once.
+rooms, costs the same. Written here: no library traces a quantized, memory-mapped distance grid; the loop is compiled
+(`field_kernels.trace`).
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import copy
 import numpy as np
 
 from ..frame import Frame
+from . import field_kernels
 from .score import DistanceField
 
 # A ray hits the map in a cell holding a map point (distance 0). One step moves at most the cell's distance less
@@ -34,6 +35,9 @@ MAX_STEPS = 96
 # The first occupied cell a ray enters lies before the surface it holds: on the 10-room benchmark's renders the
 # traced depth was 1.5-1.7 cm short of the measured one (median); this much is added back.
 HIT_OFFSET_M = 0.015
+# The field alignment (`align_on_field`) leaves out points where the field's gradient is weaker than this (per
+# metre; 1 on a surface's slope): beyond the truncation, or inside an occupied cell, the field is flat.
+MIN_GRADIENT = 0.1
 
 
 class FieldView:
@@ -78,27 +82,12 @@ class FieldView:
         """(h, r) depth (along the depth camera's axis) of the first map surface on each ray at each pose, inf
         where the ray meets none within the sensor's range. T_map_camera : (h, 4, 4) or (4, 4)."""
         T = np.asarray(T_map_camera, dtype=np.float64).reshape(-1, 4, 4)
-        h, r = len(T), len(self)
-        origin = (T[:, :3, :3] @ self.origin_camera + T[:, :3, 3])  # (h, 3)
-        dirs = np.einsum("hij,rj->hri", T[:, :3, :3], self.dirs_camera).reshape(-1, 3)  # (h·r, 3), per unit depth
-        start = np.repeat(origin, r, axis=0)
-        depth = np.full(h * r, self.min_depth_m)
-        out = np.full(h * r, np.inf)
-        # Depth advances by the field's distance over the ray's length per unit depth (its direction's norm).
-        per_depth = np.linalg.norm(dirs, axis=1)
+        out = np.empty((len(T), len(self)))
         vox = field.voxel_m
-        active = np.arange(h * r)
-        for _ in range(MAX_STEPS):
-            if not len(active):
-                break
-            p = start[active] + dirs[active] * depth[active, None]
-            dist = field.lookup_xyz(p[:, 0], p[:, 1], p[:, 2])
-            hit = dist <= 1e-6  # an occupied cell (a quantized field stores its zero exactly)
-            out[active[hit]] = depth[active[hit]] + HIT_OFFSET_M
-            step = np.maximum(dist - SAFETY_VOXELS * vox, MIN_STEP_VOXELS * vox) / per_depth[active]
-            depth[active] += step
-            active = active[~hit & (depth[active] <= self.max_depth_m)]
-        return out.reshape(h, r)
+        field_kernels.trace(*field.kernel_args(), field_kernels.floats(T[:, :3, :3]), field_kernels.floats(T[:, :3, 3]),
+                            field_kernels.floats(self.origin_camera), field_kernels.floats(self.dirs_camera), self.min_depth_m,
+                            self.max_depth_m, SAFETY_VOXELS * vox, MIN_STEP_VOXELS * vox, MAX_STEPS, HIT_OFFSET_M, out)
+        return out
 
     def agreement(self, rendered: np.ndarray, other: np.ndarray | None = None, *, tolerance_m: float = 0.04,
                   tolerance_ratio: float = 0.02) -> np.ndarray:
@@ -147,41 +136,9 @@ def align_on_field(field: DistanceField, points_camera: np.ndarray, R: np.ndarra
     few millimetres at the field's 3 cm cells, enough to start the fine refinement from).
     """
     R, t = np.array(R, dtype=np.float64), np.array(t, dtype=np.float64)
-    h = len(R)
-    if h == 0 or len(points_camera) == 0:
+    if len(R) == 0 or len(points_camera) == 0:
         return R, t
-    p = np.asarray(points_camera, dtype=np.float64)
-    e = field.voxel_m
-    offsets = np.array([[e, 0, 0], [-e, 0, 0], [0, e, 0], [0, -e, 0], [0, 0, e], [0, 0, -e]])
-    dof = 4 if up is not None else 6
-    for k in range(iterations):
-        reach = reach_m[0] * (reach_m[1] / reach_m[0]) ** (k / max(1, iterations - 1))
-        q = np.einsum("hij,mj->hmi", R, p) + t[:, None, :]  # (h, m, 3) map frame
-        d = field.lookup(q)
-        around = field.lookup(q[:, :, None, :] + offsets).astype(np.float64)  # (h, m, 6)
-        g = np.stack([around[..., 0] - around[..., 1], around[..., 2] - around[..., 3],
-                      around[..., 4] - around[..., 5]], axis=-1) / (2 * e)  # (h, m, 3)
-        w = ((d < reach) & (np.linalg.norm(g, axis=-1) > 0.1)).astype(np.float64)
-        qxg = np.cross(q, g)  # d(distance)/d(rotation about the map origin)
-        if dof == 4:
-            J = np.concatenate([(qxg @ up)[..., None], g], axis=-1)  # (h, m, 4)
-        else:
-            J = np.concatenate([qxg, g], axis=-1)  # (h, m, 6)
-        Jw = J * w[..., None]
-        H = np.einsum("hmi,hmj->hij", Jw, J) + 1e-6 * np.eye(dof)
-        b = np.einsum("hmi,hm->hi", Jw, d.astype(np.float64))
-        step = -np.linalg.solve(H, b[..., None])[..., 0]
-        enough = w.sum(axis=1) >= 3 * dof  # too few points within reach: the pose stays
-        step[~enough] = 0.0
-        omega = step[:, :1] * up if dof == 4 else step[:, :3]
-        dR = _rotvec_matrix(omega)
-        R = dR @ R
-        t = np.einsum("hij,hj->hi", dR, t) + step[:, -3:]
+    field_kernels.align(*field.kernel_args(), field_kernels.floats(points_camera), R, t,
+                        field_kernels.floats(np.zeros(3) if up is None else up), up is not None, iterations,
+                        float(reach_m[0]), float(reach_m[1]), MIN_GRADIENT)
     return R, t
-
-
-def _rotvec_matrix(omega: np.ndarray) -> np.ndarray:
-    """(h, 3) rotation vectors -> (h, 3, 3) rotations (Rodrigues)."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_rotvec(omega).as_matrix().reshape(-1, 3, 3)

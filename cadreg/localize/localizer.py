@@ -32,6 +32,7 @@ from ..site.regions import CAMERA_MARGIN_M, Region
 from .cluster import cluster_objects
 from .color_gicp import rgb_to_lab
 from .bbs import GridPyramid, map_direction_histogram, polish, yaw_candidates
+from . import field_kernels
 from .fallback import FpfhRansac
 from .field_view import FieldView, align_on_field
 from .twins import RoomTwins
@@ -182,7 +183,8 @@ class Localizer:
 
     def warm(self) -> "Localizer":
         """Build now what is otherwise built on first use (the map's FPFH features for the fallback, about a second
-        a site), so that a long-running server does not make its first fallback request pay for it."""
+        a site; the distance field's compiled loops, `field_kernels`), so that a long-running server does not make
+        its first requests pay for it."""
         if len(self.maps) == 1:
             self.refine_map.fine_target()
             self.refine_map.coarse_target()
@@ -193,6 +195,7 @@ class Localizer:
             self.fpfh()
         if self.config.label_free.enabled:
             self.pyramid()
+        field_kernels.warm()
         return self
 
     def pyramid(self) -> tuple[GridPyramid, np.ndarray | None]:
@@ -1156,7 +1159,9 @@ class Localizer:
 
     def _distinct(self, Ta: np.ndarray, Tb: np.ndarray) -> bool:
         mc = self.config.match
-        return bool(np.linalg.norm(Ta[:3, 3] - Tb[:3, 3]) > mc.distinct_translation_m
+        # The squared distance, not np.linalg.norm: a building's frame asks this of pairs of poses 6000 times.
+        d = Ta[:3, 3] - Tb[:3, 3]
+        return bool(float(d @ d) > mc.distinct_translation_m ** 2
                     or rotation_angle_deg(Ta[:3, :3].T @ Tb[:3, :3]) > mc.distinct_rotation_deg)
 
 

@@ -99,7 +99,9 @@ class RefineMap:
         # cKDTree, not small_gicp's KD-tree, for the nearest neighbours of `fitness` and `agreement`: small_gicp's is
         # 2x faster for points on the map but has no distance bound, and for points off it (a wrong hypothesis, a
         # frame looking past the map's edge) it took 30 ms for 1000 points where the bounded cKDTree takes 0.8.
-        self.fit_tree = cKDTree(self.fit_xyz)
+        # Midpoint splits without shrunk boxes (balanced_tree, compact_nodes off): half the build (15 ms where a
+        # building's region map of 120 k points took 30), and its queries were no slower.
+        self.fit_tree = cKDTree(self.fit_xyz, balanced_tree=False, compact_nodes=False)
         self._color_targets: list[ColorGicpTarget] | None = None
         self._o3d_targets: list | None = None
 

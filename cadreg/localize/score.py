@@ -11,6 +11,7 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt, minimum_filter
 
 from ..site.bundle import FieldGrid
+from . import field_kernels
 from .points import voxel_indices
 
 # A stored field holds distances in steps of truncate_m / QUANT_MAX, one byte a cell.
@@ -60,23 +61,6 @@ class DistanceField:
         self._strides = np.array([d[1] * d[2], d[2], 1], dtype=np.int64)
         return self
 
-    def _flat_index(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
-        # Float arithmetic in place, one cast at the end: scoring thousands of hypotheses gathers millions of cells
-        # a frame, and the per-axis int64 temporaries cost more than the gather. Cell indices are integers far
-        # below 2**53, so the float sum is exact; fmax/fmin (not clip) send a NaN coordinate to the border cell.
-        out = np.zeros(x.shape, dtype=np.float64)
-        cell = np.empty(x.shape, dtype=np.float64)
-        for axis, c in enumerate((x, y, z)):
-            np.subtract(c, self.origin[axis], out=cell)
-            np.divide(cell, self.voxel_m, out=cell)
-            np.floor(cell, out=cell)
-            cell += 1.0
-            np.fmax(cell, 0.0, out=cell)
-            np.fmin(cell, float(self.dims[axis] + 1), out=cell)
-            cell *= float(self._strides[axis])
-            out += cell
-        return out.astype(np.intp)
-
     def surface_points(self, spacing_m: float) -> np.ndarray:
         """(m, 3) float64 centres of the cells within half a voxel of the map, thinned to one per `spacing_m` cube
         (map frame): where the map has surfaces, read from the field alone (a building's points stay on disk)."""
@@ -94,8 +78,17 @@ class DistanceField:
 
     def lookup_xyz(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
         """Same as `lookup` with the coordinates as separate arrays of one shape (no (..., 3) copy)."""
-        values = self.grid[self._flat_index(x, y, z)]
-        return values if self.step_m is None else values.astype(np.float32) * np.float32(self.step_m)
+        x, y, z = (field_kernels.floats(c) for c in np.broadcast_arrays(x, y, z))
+        out = np.empty(x.shape, dtype=np.float32)
+        field_kernels.lookup(*self.kernel_args(), x.reshape(-1), y.reshape(-1), z.reshape(-1), out.reshape(-1))
+        return out
+
+    def kernel_args(self) -> tuple:
+        """The grid as `field_kernels` reads it: (flat grid, metres per unit, origin, voxel, last cell index per
+        axis, flat strides)."""
+        return (field_kernels.read_only(self.grid), 1.0 if self.step_m is None else float(self.step_m),
+                field_kernels.floats(self.origin),
+                self.voxel_m, (self.dims + 1).astype(np.float64), self._strides)
 
 
 def building_field(clouds: list[np.ndarray], *, voxel_m: float = 0.03, margin_m: float = 0.3, truncate_m: float = 0.5,
@@ -139,17 +132,16 @@ def inlier_score(distances: np.ndarray, tau_m: float) -> np.ndarray:
 
 
 def score_poses(field: DistanceField, points_camera: np.ndarray, R_map_camera: np.ndarray, t_map_camera: np.ndarray,
-                *, tau_m: float = 0.1, chunk: int = 2048) -> np.ndarray:
-    """Score many poses at once.
+                *, tau_m: float = 0.1) -> np.ndarray:
+    """Score many poses at once (`inlier_score` of the field's distances at each pose's points, in one compiled loop:
+    no (h, m) array of distances is made).
 
     points_camera : (m, 3) float camera frame. R_map_camera : (h, 3, 3); t_map_camera : (h, 3).
     Returns (h,) float64 soft inlier fractions.
     """
     out = np.empty(len(R_map_camera))
-    pT = np.ascontiguousarray(points_camera.T)
-    for s in range(0, len(R_map_camera), chunk):
-        p = R_map_camera[s:s + chunk] @ pT + t_map_camera[s:s + chunk, :, None]  # (h, 3, m)
-        out[s:s + chunk] = inlier_score(field.lookup_xyz(p[:, 0], p[:, 1], p[:, 2]), tau_m)
+    field_kernels.score_poses(*field.kernel_args(), field_kernels.floats(points_camera),
+                              field_kernels.floats(R_map_camera), field_kernels.floats(t_map_camera), float(tau_m), out)
     return out
 
 

@@ -1,0 +1,237 @@
+"""Compiled loops over a distance grid: gathers, many poses' scores and sphere-traced rays.
+
+A building's frame reads its distance field tens of millions of times (thousands of hypotheses scored, hundreds of
+poses aligned and rendered along the frame's rays). As numpy passes, each read cost a dozen temporaries (a cell
+index per axis, clipped, scaled, summed) and each traced step a gather of every live ray's state; the loops below
+read each cell once, in the cache order of the points, with no temporaries. Written here with numba: no library
+gathers from a quantized (or float) grid under many poses, or sphere-traces one. The arithmetic is the numpy one
+(what `score.DistanceField` documents): the cell of a coordinate is floor((c - origin) / voxel) + 1 clamped to the grid's
+one-cell border, and a NaN coordinate reads the border.
+
+grid : flat (uint8 steps of `scale` metres, or float32 metres with scale 1.0), C order over dims + 2 cells a side.
+origin : (3,) map frame, metres. voxel : metres. hi : (3,) float, the last cell index per axis (dims + 1).
+strides : (3,) int64 flat strides of the padded grid.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+# Rays traced together (`trace`) and cells read together (`lookup`): enough independent reads in flight, few
+# enough for the batch's state to stay in the first-level cache.
+TRACE_BATCH = 256
+LOOKUP_BATCH = 1024
+
+
+def floats(a: np.ndarray) -> np.ndarray:
+    """`a` as the loops take their float arrays: C-ordered, writable float64, copied only when it is not (numba
+    compiles the loops once per type of argument, and a read-only or strided array is another type)."""
+    return np.require(a, np.float64, ["C", "W"])
+
+
+def read_only(grid: np.ndarray) -> np.ndarray:
+    """A grid as the loops take it: a plain, read-only view (a memory map opened for reading is read-only, a grid
+    built in memory is not; one type for both)."""
+    view = grid.view(np.ndarray)
+    view.flags.writeable = False
+    return view
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cell(origin, voxel, hi, strides, x, y, z):
+    flat = _axis(x, origin[0], voxel, hi[0]) * strides[0]
+    flat += _axis(y, origin[1], voxel, hi[1]) * strides[1]
+    flat += _axis(z, origin[2], voxel, hi[2]) * strides[2]
+    return flat
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _axis(c, origin, voxel, hi):
+    # floor(u) + 1 = floor(u + 1), which truncation gives once it is known to be >= 0 (no call to floor). A
+    # division, not a product with the inverse: points on cell boundaries (a coarser grid's centres) must read the
+    # cell numpy's (c - origin) / voxel puts them in.
+    cell = (c - origin) / voxel + 1.0
+    if not cell >= 0.0:  # negative, or NaN
+        return np.int64(0)
+    return np.int64(min(cell, hi))
+
+
+@njit(cache=True, nogil=True)
+def lookup(grid, scale, origin, voxel, hi, strides, x, y, z, out):
+    """out[i] = the field's distance at (x[i], y[i], z[i]), metres (flat float arrays of one length)."""
+    cells = np.empty(LOOKUP_BATCH, dtype=np.int64)
+    for first in range(0, len(x), LOOKUP_BATCH):
+        count = min(LOOKUP_BATCH, len(x) - first)
+        for j in range(count):  # the cells, then the reads (`score_poses`)
+            cells[j] = _cell(origin, voxel, hi, strides, x[first + j], y[first + j], z[first + j])
+        for j in range(count):
+            out[first + j] = grid[cells[j]] * scale
+
+
+@njit(cache=True, nogil=True)
+def score_poses(grid, scale, origin, voxel, hi, strides, points, R, t, tau, out):
+    """out[h] = mean over the points of max(0, 1 - (d / tau)²), d the field's distance at R[h] · p + t[h].
+    points : (m, 3) camera frame; R : (h, 3, 3); t : (h, 3)."""
+    m = len(points)
+    cells = np.empty(m, dtype=np.int64)
+    for h in range(len(R)):
+        r, s = R[h], t[h]
+        # The cells first, then the reads: independent reads of a large grid overlap in the memory system, reads
+        # interleaved with the arithmetic of the next cell do not (one loop was slower than numpy's passes).
+        for i in range(m):
+            px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+            cells[i] = _cell(origin, voxel, hi, strides,
+                             r[0, 0] * px + r[0, 1] * py + r[0, 2] * pz + s[0],
+                             r[1, 0] * px + r[1, 1] * py + r[1, 2] * pz + s[1],
+                             r[2, 0] * px + r[2, 1] * py + r[2, 2] * pz + s[2])
+        total = 0.0
+        for i in range(m):
+            d = grid[cells[i]] * scale / tau
+            if d < 1.0:
+                total += 1.0 - d * d
+        out[h] = total / max(m, 1)
+
+
+@njit(cache=True, nogil=True)
+def trace(grid, scale, origin, voxel, hi, strides, R, t, origin_camera, dirs_camera, min_depth, max_depth,
+          safety, min_step, max_steps, hit_offset, out):
+    """out[h, r] = depth (per unit of the ray's direction) of the first occupied cell (distance 0) along ray r at
+    pose h, plus hit_offset; inf when none lies within max_depth or max_steps steps. Each step advances by the
+    cell's distance less `safety` metres, at least `min_step` metres, over the ray's length per unit depth.
+    R : (h, 3, 3); t : (h, 3); origin_camera : (3,); dirs_camera : (r, 3), per unit depth."""
+    n_rays = len(dirs_camera)
+    n = len(R) * n_rays
+    # Rays advance in batches, a step of each live ray of a batch at a time: a ray's next read waits on its last,
+    # and only the reads of different rays can overlap (one ray at a time was no faster than numpy's passes).
+    o = np.empty((TRACE_BATCH, 3))
+    d = np.empty((TRACE_BATCH, 3))
+    per_depth = np.empty(TRACE_BATCH)
+    depth = np.empty(TRACE_BATCH)
+    live = np.empty(TRACE_BATCH, dtype=np.int64)
+    cells = np.empty(TRACE_BATCH, dtype=np.int64)
+    flat_out = out.reshape(-1)
+    for first in range(0, n, TRACE_BATCH):
+        count = min(TRACE_BATCH, n - first)
+        for j in range(count):
+            h, k = divmod(first + j, n_rays)
+            r_, s = R[h], t[h]
+            for a in range(3):
+                o[j, a] = r_[a, 0] * origin_camera[0] + r_[a, 1] * origin_camera[1] + r_[a, 2] * origin_camera[2] + s[a]
+                d[j, a] = r_[a, 0] * dirs_camera[k, 0] + r_[a, 1] * dirs_camera[k, 1] + r_[a, 2] * dirs_camera[k, 2]
+            per_depth[j] = math.sqrt(d[j, 0] ** 2 + d[j, 1] ** 2 + d[j, 2] ** 2)
+            depth[j] = min_depth
+            live[j] = j
+            flat_out[first + j] = np.inf
+        n_live = count
+        for _ in range(max_steps):
+            if n_live == 0:
+                break
+            for q in range(n_live):
+                j = live[q]
+                cells[q] = _cell(origin, voxel, hi, strides, o[j, 0] + d[j, 0] * depth[j],
+                                 o[j, 1] + d[j, 1] * depth[j], o[j, 2] + d[j, 2] * depth[j])
+            kept = 0
+            for q in range(n_live):
+                j = live[q]
+                dist = grid[cells[q]] * scale
+                if dist <= 1e-6:
+                    flat_out[first + j] = depth[j] + hit_offset
+                    continue
+                depth[j] += max(dist - safety, min_step) / per_depth[j]
+                if depth[j] <= max_depth:
+                    live[kept] = j
+                    kept += 1
+            n_live = kept
+
+
+@njit(cache=True, nogil=True)
+def align(grid, scale, origin, voxel, hi, strides, points, R, t, up, turn_about_up, iterations, reach_first,
+          reach_last, min_gradient):
+    """Gauss-Newton on the field, in place on R (h, 3, 3) and t (h, 3) (`field_view.align_on_field` documents the
+    method): each pose minimizes the squared field distance of the points (m, 3, camera frame) it places, the
+    points farther than the reach (shrinking geometrically from reach_first to reach_last) or on a gradient
+    weaker than min_gradient left out; the gradient by central differences one voxel wide. turn_about_up: the
+    rotation turns about `up` only (4 degrees of freedom), else freely (6)."""
+    m = len(points)
+    dof = 4 if turn_about_up else 6
+    cells = np.empty((m, 7), dtype=np.int64)
+    q = np.empty((m, 3))
+    offsets = np.zeros((7, 3))
+    for a in range(3):
+        offsets[1 + 2 * a, a] = voxel
+        offsets[2 + 2 * a, a] = -voxel
+    J = np.empty(6)
+    for h in range(len(R)):
+        r_, s = R[h], t[h]
+        for k in range(iterations):
+            reach = reach_first * (reach_last / reach_first) ** (k / max(1, iterations - 1))
+            for i in range(m):
+                for a in range(3):
+                    q[i, a] = r_[a, 0] * points[i, 0] + r_[a, 1] * points[i, 1] + r_[a, 2] * points[i, 2] + s[a]
+                for o in range(7):  # the cells first, then the reads (`score_poses`)
+                    cells[i, o] = _cell(origin, voxel, hi, strides, q[i, 0] + offsets[o, 0], q[i, 1] + offsets[o, 1],
+                                        q[i, 2] + offsets[o, 2])
+            H = np.eye(dof) * 1e-6
+            b = np.zeros(dof)
+            used = 0
+            for i in range(m):
+                d = grid[cells[i, 0]] * scale
+                if not d < reach:
+                    continue
+                gx = (grid[cells[i, 1]] * scale - grid[cells[i, 2]] * scale) / (2 * voxel)
+                gy = (grid[cells[i, 3]] * scale - grid[cells[i, 4]] * scale) / (2 * voxel)
+                gz = (grid[cells[i, 5]] * scale - grid[cells[i, 6]] * scale) / (2 * voxel)
+                if gx * gx + gy * gy + gz * gz <= min_gradient * min_gradient:
+                    continue
+                used += 1
+                # d(distance)/d(rotation about the map origin) is q x g; d/d(translation) is g
+                cx = q[i, 1] * gz - q[i, 2] * gy
+                cy = q[i, 2] * gx - q[i, 0] * gz
+                cz = q[i, 0] * gy - q[i, 1] * gx
+                if turn_about_up:
+                    J[0] = cx * up[0] + cy * up[1] + cz * up[2]
+                    J[1], J[2], J[3] = gx, gy, gz
+                else:
+                    J[0], J[1], J[2], J[3], J[4], J[5] = cx, cy, cz, gx, gy, gz
+                for u in range(dof):
+                    b[u] += J[u] * d
+                    for v in range(dof):
+                        H[u, v] += J[u] * J[v]
+            if used < 3 * dof:  # too few points within reach: the pose stays
+                continue
+            step = -np.linalg.solve(H, b)
+            if turn_about_up:
+                wx, wy, wz = step[0] * up[0], step[0] * up[1], step[0] * up[2]
+            else:
+                wx, wy, wz = step[0], step[1], step[2]
+            dR = _rotation(wx, wy, wz)
+            r_[:, :] = dR @ r_
+            s[:] = dR @ s + step[dof - 3:]
+
+
+@njit(cache=True, nogil=True)
+def _rotation(wx, wy, wz):
+    """The rotation (3, 3) of the rotation vector (wx, wy, wz) (Rodrigues)."""
+    theta = math.sqrt(wx * wx + wy * wy + wz * wz)
+    K = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
+    if theta < 1e-12:
+        return np.eye(3) + K
+    K /= theta
+    return np.eye(3) + math.sin(theta) * K + (1.0 - math.cos(theta)) * (K @ K)
+
+
+def warm() -> None:
+    """Compile (or load from numba's cache) every loop for both kinds of grid, so that no frame pays for it: a
+    first compilation takes seconds, a cached one a fraction of one."""
+    for grid in (np.zeros(27, dtype=np.uint8), np.zeros(27, dtype=np.float32)):
+        args = (read_only(grid), 1.0, np.zeros(3), 1.0, np.full(3, 2.0), np.array([9, 3, 1], dtype=np.int64))
+        one = np.zeros(1)
+        lookup(*args, one, one, one, np.empty(1, dtype=np.float32))
+        R, t, p = np.eye(3)[None], np.zeros((1, 3)), np.zeros((1, 3))
+        score_poses(*args, p, R, t, 0.1, np.empty(1))
+        trace(*args, R, t, np.zeros(3), np.array([[0.0, 0.0, 1.0]]), 0.5, 1.0, 0.1, 0.1, 4, 0.0, np.empty((1, 1)))
+        for about_up in (True, False):
+            align(*args, p, R.copy(), t.copy(), np.array([0.0, 0.0, 1.0]), about_up, 1, 0.5, 0.1, 0.1)
