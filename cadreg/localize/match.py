@@ -37,6 +37,14 @@ class MapGraph:
     extent: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     top: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (k,) highest point of the box along up, metres
     _by_class: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+    _distances: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
+
+    def distances(self) -> np.ndarray:
+        """(k, k) distances between the nodes' centroids, metres, made on first use: the pair hypotheses of a
+        building's frame compare tens of thousands of node pairs with each pair of its objects."""
+        if self._distances is None:
+            self._distances = np.linalg.norm(self.centroid[:, None] - self.centroid[None], axis=-1)
+        return self._distances
 
     def nearest_of_class(self, xyz: np.ndarray, cls: int, radius_m: float) -> np.ndarray:
         """(m,) index of the node of class `cls` nearest each point of xyz ((m, 3), map frame), -1 where none lies
@@ -161,24 +169,28 @@ def gravity_hypotheses(scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: M
     # Single objects: the object's centroid fixes the translation for each yaw of a sweep.
     yaws = np.radians(np.arange(0.0, 360.0, yaw_step_deg))
     Ryaw = yaw_rotations(up, yaws)
+    RL = Ryaw @ R_level  # each yaw's rotation of the camera, once (a building repeats them for every node)
+    grids: dict[float, np.ndarray] = {}  # offsets by reach: a building's nodes share a few
     for i in range(len(c)):
         nodes = np.flatnonzero(graph.cls == scan_cls[i])
         if len(nodes) == 0:
             continue
         Rc = Ryaw @ c[i]  # (y, 3)
         t = graph.centroid[nodes][:, None, :] - Rc[None, :, :]  # (k, y, 3)
-        R = np.broadcast_to(Ryaw[None], (len(nodes), len(yaws), 3, 3))
+        R = np.broadcast_to(RL[None], (len(nodes), len(yaws), 3, 3))
         seed = np.stack(np.broadcast_arrays(np.full((len(nodes), len(yaws)), i), nodes[:, None]), axis=-1)
-        parts.append(Hypotheses(R.reshape(-1, 3, 3) @ R_level, t.reshape(-1, 3), seed.reshape(-1, 2)))
+        parts.append(Hypotheses(R.reshape(-1, 3, 3), t.reshape(-1, 3), seed.reshape(-1, 2)))
         if offset_step_m > 0:
             for k in nodes:
                 reach = min(max_offset_m, 0.5 * float(np.max(graph.extent[k][:2])) if len(graph.extent) else 0.0)
-                offsets = _horizontal_grid(up, reach, offset_step_m)
+                if reach not in grids:
+                    grids[reach] = _horizontal_grid(up, reach, offset_step_m)
+                offsets = grids[reach]
                 if len(offsets) == 0:
                     continue
                 tk = (graph.centroid[k] - Rc)[:, None, :] + offsets[None, :, :]  # (y, o, 3)
-                Rk = np.broadcast_to(Ryaw[:, None], (len(yaws), len(offsets), 3, 3)).reshape(-1, 3, 3)
-                parts.append(Hypotheses(Rk @ R_level, tk.reshape(-1, 3), np.tile([i, k], (len(Rk), 1))))
+                Rk = np.broadcast_to(RL[:, None], (len(yaws), len(offsets), 3, 3)).reshape(-1, 3, 3)
+                parts.append(Hypotheses(Rk, tk.reshape(-1, 3), np.tile([i, k], (len(Rk), 1))))
     # Pairs: the horizontal direction between two objects fixes the yaw.
     for i, j in permutations(range(len(c)), 2):
         if i > j:
@@ -191,15 +203,13 @@ def gravity_hypotheses(scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: M
         b = np.flatnonzero(graph.cls == scan_cls[j])
         if len(a) == 0 or len(b) == 0:
             continue
-        A, B = np.meshgrid(a, b, indexing="ij")
-        A, B = A.ravel(), B.ravel()
-        keep = A != B
-        A, B = A[keep], B[keep]
-        dm = graph.centroid[B] - graph.centroid[A]
-        ok = np.abs(np.linalg.norm(dm, axis=1) - np.linalg.norm(ds)) < pair_tolerance_m
-        A, B, dm = A[ok], B[ok], dm[ok]
+        # Every pair of distinct nodes of the two classes as far apart as the two objects (row-major over a, b)
+        ia, ib = np.nonzero((np.abs(graph.distances()[np.ix_(a, b)] - np.linalg.norm(ds)) < pair_tolerance_m)
+                            & (a[:, None] != b[None, :]))
+        A, B = a[ia], b[ib]
         if len(A) == 0:
             continue
+        dm = graph.centroid[B] - graph.centroid[A]
         hm = _horizontal(dm, up)
         yaw = np.arctan2(np.cross(hs, hm) @ up, hm @ hs)
         R = yaw_rotations(up, yaw)
