@@ -134,3 +134,23 @@ def test_map_up_with_the_cameras_prior_is_not_held_to_z() -> None:
     # a prior with no surface direction in its cone (a map of one wall) stands as it is
     wall = np.tile([1.0, 0.0, 0.0], (500, 1))
     assert np.allclose(map_up_axis(wall, prior=camera_up), camera_up / np.linalg.norm(camera_up))
+
+
+def test_up_from_a_cluttered_view_whose_flat_surfaces_are_a_small_share_of_it() -> None:
+    """A wall (12 % of the points) and a strip of floor (1.5 %) behind clutter whose neighbourhoods are not flat: the
+    first sample of 1000 points holds too few flat ones for an up (about 120 wall normals where a wall alone needs
+    150, about 15 floor normals where 20 count), the retry with a larger sample finds it."""
+    from cadreg.localize.gravity import UP_SAMPLE
+
+    rng = np.random.default_rng(5)
+    n_wall, n_floor, n_clutter = 2400, 300, 17600
+    # OpenCV axes (y down): a wall on the right of the view, the floor 1.2 m below the camera, clutter ahead
+    wall = np.column_stack([np.full(n_wall, 1.5), rng.uniform(-1, 1, n_wall), rng.uniform(1, 3, n_wall)])
+    floor_pts = np.column_stack([rng.uniform(-1, 1, n_floor), np.full(n_floor, 1.2), rng.uniform(2.5, 3, n_floor)])
+    clutter = rng.uniform([-1, -1, 1], [0.8, 1, 2.4], size=(n_clutter, 3))
+    xyz = np.vstack([wall, floor_pts, clutter])
+    xyz = xyz[rng.permutation(len(xyz))]
+    assert len(xyz) > UP_SAMPLE
+    floor = estimate_up_from_normals(xyz)
+    assert floor is not None and floor.source == "surfaces"
+    assert np.degrees(np.arccos(np.clip(floor.up_camera @ np.array([0.0, -1.0, 0.0]), -1, 1))) < 3.0

@@ -5,8 +5,9 @@ score grid over the map (how close each cell is to a map surface) and a pyramid 
 built once per site. A node of the search is a yaw and a cube of 2^h × 2^h × 2^h camera positions; the sum of the
 level-h grid at the node's corner plus each frame point is an upper bound of the score of every position in the
 cube, so whole cubes are dropped when their bound cannot reach the best leaf found. Nodes are expanded in batches
-(numpy gathers of nodes × points), best first with a greedy dive for the first bound, and the number of nodes kept
-per level is capped so that the cost of a frame is bounded by its inputs, not by its luck.
+(a compiled sum over nodes × points, `field_kernels.sums_at`), best first with a greedy dive for the first bound,
+and the number of nodes kept per level is capped so that the cost of a frame is bounded by its inputs, not by its
+luck.
 
 Written here because no library does it: 3D-BBS is a C++/CUDA ROS package without Python bindings, and
 Cartographer's matcher is 2-D and part of the Cartographer C++ tree.
@@ -22,14 +23,13 @@ import numpy as np
 from scipy.ndimage import binary_dilation
 
 from ..geometry import rotation_between
+from . import field_kernels
 from .match import Hypotheses, distinct_best
 from .score import DistanceField
 
 # The score grid is stored as uint8 (0..SCALE): a quarter of float32's memory, and sums of a few hundred points
 # stay exact in int32.
 SCALE = 255
-# Nodes are evaluated in chunks of this many, so that a batch's (nodes × points) gather stays a few MB.
-CHUNK = 2048
 
 
 @dataclass
@@ -162,12 +162,13 @@ class GridPyramid:
         yi = np.repeat(np.arange(len(yaws_rad)), len(corner))
         corner = np.tile(corner, (len(yaws_rad), 1))
 
+        offs = np.ascontiguousarray(offs)
+        grids = [field_kernels.read_only(g) for g in self.grids]
+
         def bound(level: int, yaw: np.ndarray, cell: np.ndarray) -> np.ndarray:
-            flat = cell @ self.strides
             out = np.empty(len(yaw), dtype=np.int64)
-            g = self.grids[level]
-            for a in range(0, len(yaw), CHUNK):
-                out[a:a + CHUNK] = g[offs[yaw[a:a + CHUNK]] + flat[a:a + CHUNK, None]].sum(axis=1, dtype=np.int64)
+            field_kernels.sums_at(grids[level], offs, np.ascontiguousarray(yaw, dtype=np.int64),
+                                  np.ascontiguousarray(cell @ self.strides, dtype=np.int64), out)
             stats.nodes += len(yaw)
             return out
 

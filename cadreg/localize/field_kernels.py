@@ -1,4 +1,5 @@
-"""Compiled loops over a distance grid: gathers, many poses' scores and sphere-traced rays.
+"""Compiled loops over a distance grid: gathers, many poses' scores, sphere-traced rays, the field alignment and
+the label-free search's bounds.
 
 A building's frame reads its distance field tens of millions of times (thousands of hypotheses scored, hundreds of
 poses aligned and rendered along the frame's rays). As numpy passes, each read cost a dozen temporaries (a cell
@@ -223,6 +224,21 @@ def _rotation(wx, wy, wz):
     return np.eye(3) + math.sin(theta) * K + (1.0 - math.cos(theta)) * (K @ K)
 
 
+@njit(cache=True, nogil=True)
+def sums_at(grid, offsets, rows, bases, out):
+    """out[a] = the sum of grid[offsets[rows[a], i] + bases[a]] over i: the label-free search's bound of a node
+    (`bbs.GridPyramid.search`: a yaw's row of point offsets from a corner cell). grid : flat uint8;
+    offsets : (k, n) int64; rows, bases : (a,) int64; out : (a,) int64."""
+    n = offsets.shape[1]
+    for a in range(len(rows)):
+        row = offsets[rows[a]]
+        base = bases[a]
+        total = 0
+        for i in range(n):
+            total += grid[row[i] + base]
+        out[a] = total
+
+
 def warm() -> None:
     """Compile (or load from numba's cache) every loop for both kinds of grid, so that no frame pays for it: a
     first compilation takes seconds, a cached one a fraction of one."""
@@ -233,5 +249,7 @@ def warm() -> None:
         R, t, p = np.eye(3)[None], np.zeros((1, 3)), np.zeros((1, 3))
         score_poses(*args, p, R, t, 0.1, np.empty(1))
         trace(*args, R, t, np.zeros(3), np.array([[0.0, 0.0, 1.0]]), 0.5, 1.0, 0.1, 0.1, 4, 0.0, np.empty((1, 1)))
+        sums_at(args[0], np.zeros((1, 1), dtype=np.int64), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
+                np.empty(1, dtype=np.int64))
         for about_up in (True, False):
             align(*args, p, R.copy(), t.copy(), np.array([0.0, 0.0, 1.0]), about_up, 1, 0.5, 0.1, 0.1)
