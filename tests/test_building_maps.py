@@ -80,6 +80,53 @@ def test_a_regions_map_holds_its_neighbours_within_the_halo(twin_rooms_dir: Path
     assert np.all(borrowed[:, 0] <= a.bounds[1][0] + gap + 1.0 + 1e-4)
 
 
+def test_the_stored_region_grids_are_each_regions_halo_on_the_fitness_grid(twin_rooms_dir: Path, tmp_path: Path) -> None:
+    from cadreg.localize.points import voxel_indices
+    from cadreg.localize.refine import FITNESS_VOXEL_M
+
+    site = Site.load(twin_rooms_dir)
+    grids = site.region_grids
+    lc = LocalizeConfig()
+    assert grids is not None and grids.matches(cloud=lc.refine.map_points, halo_m=lc.regions.halo_m,
+                                               voxel_m=FITNESS_VOXEL_M)
+    assert not grids.points.flags.writeable  # memory-mapped, like the clouds
+    for k, region in enumerate(site.regions):
+        halo = halo_cloud(site, site.regions, region, grids.cloud, grids.halo_m)
+        keep = voxel_indices(halo.points.astype(np.float64), grids.voxel_m)
+        rows = grids.rows(k)
+        assert np.array_equal(rows["xyz"], halo.points[keep]) and np.array_equal(rows["rgb"], halo.colors[keep])
+        assert np.array_equal(rows["cls"], halo.class_index[keep])
+        grids.release(k)  # pages handed back are read again on use
+        assert np.array_equal(grids.rows(k)["xyz"], halo.points[keep])
+    bad = tmp_path / "bad"
+    shutil.copytree(twin_rooms_dir, bad)
+    rows = np.load(bad / "regions.npy")
+    rows["xyz"][7, 0] += 0.5
+    np.save(bad / "regions.npy", rows)
+    with pytest.raises(BundleIntegrityError, match="regions.npy"):
+        Site.load(bad)
+
+
+def test_region_maps_from_the_stored_grids_answer_as_the_maps_built_on_use(twin_rooms_dir: Path,
+                                                                            twin_shared_view) -> None:
+    frame, T_true = twin_shared_view
+    stored_site, built_site = Site.load(twin_rooms_dir), Site.load(twin_rooms_dir)
+    built_site.region_grids = None  # a bundle composed before the grids were stored
+    in_a = replace(frame, search_region=SearchRegion(region_ids=("a",)))
+    stored, built = Localizer.from_site(stored_site), Localizer.from_site(built_site)
+    a, b = stored.localize(in_a), built.localize(in_a)
+    assert a.status == b.status == Status.OK
+    assert np.linalg.norm(a.T_map_camera[:3, 3] - b.T_map_camera[:3, 3]) < 0.01
+    assert np.linalg.norm(a.T_map_camera[:3, 3] - T_true[:3, 3]) < 0.05
+    made, on_use = stored.maps.index(stored.maps.regions[0]), built.maps.index(built.maps.regions[0])
+    # the stored grid is the map built on use, gridded: the fitness grid is the same set of points
+    assert len(made.refine_map.xyz) == len(made.refine_map.fit_xyz) == len(on_use.refine_map.fit_xyz)
+    assert len(made.refine_map.xyz) < len(on_use.refine_map.xyz)
+    # settings the grids were not made with: the localizer builds its own
+    other = Localizer.from_site(stored_site, LocalizeConfig(regions=RegionConfig(halo_m=1.0)))
+    assert len(other.maps.index(other.maps.regions[0]).refine_map.xyz) != len(made.refine_map.xyz)
+
+
 def test_tied_rooms_beyond_the_budget_are_reported_unverified_and_the_answer_is_not_ok(twin_rooms_dir: Path,
                                                                                          twin_shared_view) -> None:
     frame, _ = twin_shared_view

@@ -126,3 +126,46 @@ def test_poses_that_look_alike_are_told_apart_by_the_frame_objects(twin_rooms_di
     shared, T_shared = twin_shared_view  # the table's corner, which both rooms show
     told, refined, refine_calls, _ = answered_in_b(shared, T_shared)
     assert not told and not refine_calls and pose_errors(refined[0][1].T_map_camera, to_b @ T_shared)[0] < 1e-9
+
+
+def test_the_copies_of_a_pose_the_objects_put_first_are_looked_at(scene0470_site_dir: Path, scene0470_dir: Path,
+                                                                  tmp_path: Path) -> None:
+    """`Localizer._promoted_twins`: when the frame's objects put a rival first, the copies of the rival's view are
+    looked at before the answer may stand alone. Rooms "a" and "c" are the same room, "b" lacks the chair and the
+    bin: the chair view's pose in "a" has its copy in "c" (the same view along every ray) as a rival."""
+    import json
+
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.localize.refine import RefineOutcome
+    from cadreg.localize.stages import Candidate, StageTimer
+    from cadreg.result import Diagnostics, Hypothesis
+    from cadreg.site.compose import compose_site, read_layout
+    from tracking_rooms import DROPPED, ROOM_B_OFFSET_M, render_turn
+
+    def moved(dx: float) -> list:
+        T = np.eye(4)
+        T[0, 3] = dx
+        return T.tolist()
+
+    layout = tmp_path / "layout.json"
+    layout.write_text(json.dumps({"site_id": "three-rooms", "rooms": [
+        {"name": "a", "bundle": str(scene0470_site_dir), "T_building_room": moved(0.0)},
+        {"name": "b", "bundle": str(scene0470_site_dir), "T_building_room": moved(ROOM_B_OFFSET_M), "drop_objects": DROPPED},
+        {"name": "c", "bundle": str(scene0470_site_dir), "T_building_room": moved(2 * ROOM_B_OFFSET_M)},
+    ]}))
+    compose_site(read_layout(layout), tmp_path).save(tmp_path / "site")
+    loc = Localizer.from_site(Site.load(tmp_path / "site"))
+    frames = render_turn(scene0470_dir / "scene0470_00_vh_clean_2.ply",
+                         scene0470_dir / "scene0470_00_vh_clean_2.labels.ply", tmp_path / "turn", n=2)
+    chair_view, T_a = RecordedFrames.open(frames).load(1)  # the chair and the bin only rooms "a" and "c" hold
+    diag = Diagnostics(site_id="s", bundle_version="v")
+    scan = loc._scan(chair_view, diag, StageTimer(diag.stage_ms))
+    render = scan.view.render(loc.field, T_a)[0]
+    score = float(scan.view.agreement(render)[0])
+    out = RefineOutcome(T_a, None, 1, True, "small_gicp")
+    winner = Candidate(T_a, score, Hypothesis(T_a, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64))
+    candidates, renders = [winner], {id(out): render}
+    twins = loc._promoted_twins(scan, [(score, out, winner, 0.0)], scan.center_camera, candidates, renders)
+    in_c = np.array(moved(2 * ROOM_B_OFFSET_M)) @ T_a
+    assert any(pose_errors(t.T_map_camera, in_c)[0] < 0.05 and t.hypothesis.region == "c" for t in twins)
+    assert all(any(t is c for c in candidates) for t in twins)  # listed among the candidates the result reports

@@ -21,6 +21,8 @@ from .points import FramePoints, voxel_indices
 REFINE_METHODS = ("color_gicp", "small_gicp", "open3d_colored_icp")
 # Neighbours of each point's covariance in GICP: small_gicp's default, for the map's side and the frame's alike.
 GICP_NEIGHBORS = 10
+# The map's grid for fitness and agreement (`RefineMap.fit_xyz`): one map point per voxel of this size.
+FITNESS_VOXEL_M = 0.02
 # Fewer frame points than this inside the ROI cannot carry a GICP: refine with the whole frame instead.
 MIN_ROI_POINTS = 100
 # A cropped fine target holds the map points this far around the box of the frame points at their starting pose:
@@ -67,12 +69,12 @@ def covariance_from_hessian(H: np.ndarray, error: float, inliers: int, *,
 class RefineMap:
     """The map as the refinement sees it (map frame, metres).
 
-    xyz : (n, 3) float; rgb : (n, 3) float in [0, 1].
+    xyz : (n, 3) float; rgb : (n, 3) float in [0, 1]. gridded : the points are one per fitness_voxel_m voxel already.
     """
 
     def __init__(self, xyz: np.ndarray, rgb: np.ndarray, class_index: np.ndarray | None = None, *, fine_voxel_m: float = 0.025, coarse_voxel_m: float = 0.08,
                  color_scales_m: tuple[float, ...] = (0.08, 0.04, 0.02), color_weight_m: float = 0.05,
-                 fitness_voxel_m: float = 0.02, crop_fine_target: bool = False) -> None:
+                 fitness_voxel_m: float = FITNESS_VOXEL_M, crop_fine_target: bool = False, gridded: bool = False) -> None:
         self.xyz = np.asarray(xyz, dtype=np.float64)
         self.rgb = np.asarray(rgb, dtype=np.float64)
         self.fine_voxel_m = fine_voxel_m
@@ -90,7 +92,8 @@ class RefineMap:
         # the cost, not kept: `fine_target_around`). The region cache clears it when a second frame comes to
         # the region (`regions.RegionMaps.index`): a room frames keep coming from gets its whole target, kept.
         self.crop_fine_target = crop_fine_target
-        keep = voxel_indices(self.xyz, fitness_voxel_m)
+        # Points already one per fitness voxel (a building's stored region grid) are their own grid.
+        keep = np.arange(len(self.xyz)) if gridded else voxel_indices(self.xyz, fitness_voxel_m)
         self.fit_xyz = self.xyz[keep]
         self._fit_keep = keep
         self._fit_lab: np.ndarray | None = None  # CIE Lab of fit_xyz, made on first use (`fit_lab`)

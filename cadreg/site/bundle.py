@@ -10,9 +10,11 @@ Bundle layout (DESIGN §3), self-describing, no pickle:
     graph.json  nodes and edges of the semantic graph
     field.npy   (optional, buildings) the distance field over the whole map, built once when the site is composed
                 (`FieldGrid`): loading it is a memory map, not a rebuild
+    regions.npy (optional, buildings) each region's map points on a grid, its neighbours' within a halo included
+                (`RegionGrids`): what a localizer builds a region's search structures from, read, not gathered
 
 `version` is the first 12 hex digits of the sha256 over the sorted "name:sha256" lines of map.ply, raw.ply,
-graph.json (and field.npy when present): the same content gives the same version, a rebuilt or replaced site a new
+graph.json (and field.npy, regions.npy when present): the same content gives the same version, a rebuilt or replaced site a new
 one.
 `Site.load` checks every hash and raises BundleIntegrityError naming the file that does not match.
 """
@@ -29,6 +31,7 @@ import numpy as np
 from ..config import GraphConfig
 from ..errors import BundleIntegrityError, ConfigError, InvalidFileError, InvalidFrame
 from ..io.bundle_files import map_npy, npy_bytes, read_bytes, read_json, sha256_bytes, sha256_file, write_bundle_dir
+from ..io.ply import release_pages
 from ..labels import labels_to_class_index
 from ..pointset import MappedRows, PointSet
 from .graph import ObjectNode, SemanticGraph  # noqa: F401  (ObjectNode is part of this module's API)
@@ -36,7 +39,9 @@ from .regions import Region, from_manifest, region_from_points, to_manifest
 
 SCHEMA = "cadreg.site/1"
 DATA_FILES = ("map.ply", "raw.ply", "graph.json")
-OPTIONAL_FILES = ("field.npy",)
+OPTIONAL_FILES = ("field.npy", "regions.npy")
+# A stored region grid's rows: position (map frame, metres), colour, class index (-1: none).
+REGION_GRID_DTYPE = np.dtype([("xyz", "<f4", (3,)), ("rgb", "u1", (3,)), ("cls", "<i2")])
 CLOUDS = ("raw", "enhanced", "both")
 
 
@@ -63,6 +68,43 @@ class FieldGrid:
                 "truncate_m": float(self.truncate_m), "shape": [int(x) for x in self.grid.shape]}
 
 
+@dataclass(frozen=True, eq=False)
+class RegionGrids:
+    """Each region's map points as a building's localizer uses them (regions.npy): the points of cloud `cloud`
+    ("raw" | "enhanced" | "both") inside the region's box grown by halo_m (its neighbours' points included), one per
+    voxel_m voxel (`localize.points.voxel_indices`). Built when the site is composed
+    (`cadreg.localize.regions.region_grids`), so that a worker makes a region's search structures from one read of
+    its rows rather than by gathering and gridding the building's points.
+
+    points : (n,) REGION_GRID_DTYPE rows, region after region in the order of the site's regions; offsets : (r + 1,)
+    int64, region k's rows are points[offsets[k]:offsets[k + 1]]."""
+
+    points: np.ndarray
+    offsets: np.ndarray
+    cloud: str
+    halo_m: float
+    voxel_m: float
+
+    def rows(self, k: int) -> np.ndarray:
+        return self.points[int(self.offsets[k]):int(self.offsets[k + 1])]
+
+    def release(self, k: int) -> None:
+        """Hand back the pages of region k's rows once they have been copied (a memory-mapped regions.npy)."""
+        mm = getattr(self.points, "_mmap", None)
+        if mm is not None:
+            item = self.points.dtype.itemsize
+            release_pages(mm, self.points.offset + int(self.offsets[k]) * item,
+                          self.points.offset + int(self.offsets[k + 1]) * item)
+
+    def matches(self, *, cloud: str, halo_m: float, voxel_m: float) -> bool:
+        """Whether these grids are what a localizer of these settings would build itself."""
+        return self.cloud == cloud and np.isclose(self.halo_m, halo_m) and np.isclose(self.voxel_m, voxel_m)
+
+    def to_manifest(self) -> dict[str, Any]:
+        return {"cloud": self.cloud, "halo_m": float(self.halo_m), "voxel_m": float(self.voxel_m),
+                "offsets": [int(x) for x in self.offsets]}
+
+
 @dataclass(eq=False)  # arrays inside: compare sites by version, not with ==
 class Site:
     """A site, in memory.
@@ -74,6 +116,7 @@ class Site:
     manifest : the parsed site.json (for a site not yet saved: what site.json will hold).
     mapped_rows : for a memory-mapped site (`load(mapped=True)`, a building by default), where each cloud's rows lie
     in its file, for `release`. field_grid : a building's stored distance field (field.npy), or None.
+    region_grids : a building's stored region grids (regions.npy), or None.
     """
 
     site_id: str
@@ -86,6 +129,7 @@ class Site:
     label_maps: dict[str, dict[int, str]] = field(default_factory=dict)
     mapped_rows: dict[str, MappedRows] = field(default_factory=dict, repr=False)
     field_grid: FieldGrid | None = None  # a building's stored distance field (field.npy); None: built at load
+    region_grids: RegionGrids | None = None  # a building's stored region grids (regions.npy); None: built on use
 
     def release(self, which: str, rows: slice) -> None:
         """Hand back the pages of rows of a memory-mapped cloud ("map" | "raw") once they have been copied; nothing
@@ -152,6 +196,8 @@ class Site:
         }
         if self.field_grid is not None:
             files["field.npy"] = npy_bytes(self.field_grid.grid)
+        if self.region_grids is not None:
+            files["regions.npy"] = npy_bytes(self.region_grids.points)
         return files
 
     def refresh_version(self) -> dict[str, bytes]:
@@ -164,6 +210,9 @@ class Site:
         meta.pop("field", None)
         if self.field_grid is not None:
             meta["field"] = self.field_grid.to_manifest()
+        meta.pop("region_grids", None)
+        if self.region_grids is not None:
+            meta["region_grids"] = self.region_grids.to_manifest()
         regions = meta.get("regions")
         if not regions or len(regions) == 1:
             # One region is the whole site: measured again from the clouds as they are now (a site whose clouds
@@ -221,6 +270,7 @@ class Site:
             enhanced = PointSet.from_ply_bytes(blobs["map.ply"], root / "map.ply")
             raw = PointSet.from_ply_bytes(blobs["raw.ply"], root / "raw.ply")
         stored_field = _stored_field(root, meta) if "field.npy" in meta["files"] else None
+        stored_grids = _stored_region_grids(root, meta) if "regions.npy" in meta["files"] else None
         try:
             graph = SemanticGraph.from_dict(json.loads(blobs["graph.json"]))
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
@@ -236,7 +286,8 @@ class Site:
             if which in rows:  # checked: a mapped cloud's pages go back until a region needs them
                 rows[which].release(slice(0, len(cloud)))
         site = cls(site_id=str(meta["site_id"]), version=str(meta["version"]), manifest=meta, map=enhanced, raw=raw,
-                   graph=graph, classes=classes, label_maps=label_maps, mapped_rows=rows, field_grid=stored_field)
+                   graph=graph, classes=classes, label_maps=label_maps, mapped_rows=rows, field_grid=stored_field,
+                   region_grids=stored_grids)
         if meta.get("regions"):
             from_manifest(meta["regions"], map_points=len(enhanced), raw_points=len(raw), source=str(meta_path))
         try:
@@ -275,6 +326,24 @@ def _stored_field(root: Path, meta: dict[str, Any]) -> FieldGrid:
     if not ok:
         raise InvalidFileError(path, "not the uint8 grid site.json's 'field' describes")
     return FieldGrid(grid, origin, voxel_m, truncate_m)
+
+
+def _stored_region_grids(root: Path, meta: dict[str, Any]) -> RegionGrids:
+    """The regions.npy of a bundle, memory-mapped and checked against site.json's "region_grids" and "regions"."""
+    path = root / "regions.npy"
+    points = map_npy(path)
+    try:
+        info = meta["region_grids"]
+        offsets = np.asarray(info["offsets"], dtype=np.int64).reshape(-1)
+        cloud, halo_m, voxel_m = str(info["cloud"]), float(info["halo_m"]), float(info["voxel_m"])
+        regions = meta.get("regions") or []
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InvalidFileError(root / "site.json", f"malformed 'region_grids': {exc!r}") from None
+    if not (points.dtype == REGION_GRID_DTYPE and points.ndim == 1 and len(offsets) == len(regions) + 1
+            and offsets[0] == 0 and offsets[-1] == len(points) and np.all(np.diff(offsets) >= 0)
+            and cloud in CLOUDS and halo_m >= 0 and voxel_m > 0):
+        raise InvalidFileError(path, "not the region grids site.json's 'region_grids' and 'regions' describe")
+    return RegionGrids(points, offsets, cloud, halo_m, voxel_m)
 
 
 def whole_site_region(site: Site, region_id: str | None = None) -> Region:

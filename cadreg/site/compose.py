@@ -13,8 +13,9 @@ room's map and raw points and graph nodes are moved into the building frame; nod
 grown by DROP_MARGIN_M), as when a chair is missing from one of two identical rooms. The graph's edges are
 rebuilt over all nodes with the rooms' δ (rooms touching each other get edges across). Instance ids are offset per
 room so that they stay distinct. Each room is a region of the site (`regions.py`): its name, box, nodes and its
-rows of the two clouds (rooms are written one after the other). The output is one ordinary bundle (cadreg/site/bundle.py), loaded and served as
-any other.
+rows of the two clouds (rooms are written one after the other). The building's distance field and each region's
+grid of points (`RegionGrids`) are built here and stored. The output is one ordinary bundle
+(cadreg/site/bundle.py), loaded and served as any other.
 """
 
 from __future__ import annotations
@@ -27,9 +28,11 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from ..config import LocalizeConfig
 from ..errors import ConfigError, InvalidFileError
 from ..geometry import is_rigid, transform_points
 from ..localize.gravity import map_floor_height
+from ..localize.regions import region_grids
 from ..localize.score import building_field
 from ..pointset import PointSet
 from .bundle import Site
@@ -202,5 +205,11 @@ def compose_site(layout: Layout, root: str | Path) -> Site:
     site = Site(site_id=layout.site_id, version="", manifest=manifest, map=PointSet.concat(maps),
                 raw=PointSet.concat(raws), graph=build_graph(nodes, first.edge_max_m), classes=list(first.classes),
                 label_maps=dict(first.label_maps), field_grid=field_grid)
+    # Each region's grid of the points its localizer's region map holds (itself and a halo of its neighbours), with
+    # the default localizer settings: a worker reads a region's rows instead of gathering and gridding them (a
+    # one-room site's localizer builds its one map at start, from the whole cloud).
+    lc = LocalizeConfig()
+    if len(site.regions) > 1:
+        site.region_grids = region_grids(site, site.regions, cloud=lc.refine.map_points, halo_m=lc.regions.halo_m)
     site.refresh_version()
     return site
