@@ -5,9 +5,9 @@ A building's frame reads its distance field tens of millions of times (thousands
 poses aligned and rendered along the frame's rays). As numpy passes, each read cost a dozen temporaries (a cell
 index per axis, clipped, scaled, summed) and each traced step a gather of every live ray's state; the loops below
 read each cell once, in the cache order of the points, with no temporaries. Written here with numba: no library
-gathers from a quantized (or float) grid under many poses, or sphere-traces one. The arithmetic is the numpy one
-(what `score.DistanceField` documents): the cell of a coordinate is floor((c - origin) / voxel) + 1 clamped to the grid's
-one-cell border, and a NaN coordinate reads the border.
+gathers from a quantized (or float) grid under many poses, or sphere-traces one. The cell of a coordinate is
+floor((c - origin) / voxel) + 1, clamped to the grid's one-cell border (`score.DistanceField`: it reads the
+truncation distance), and a NaN coordinate reads the border.
 
 grid : flat (uint8 steps of `scale` metres, or float32 metres with scale 1.0), C order over dims + 2 cells a side.
 origin : (3,) map frame, metres. voxel : metres. hi : (3,) float, the last cell index per axis (dims + 1).

@@ -14,8 +14,8 @@ Bundle layout (DESIGN §3), self-describing, no pickle:
                 (`RegionGrids`): what a localizer builds a region's search structures from, read, not gathered
 
 `version` is the first 12 hex digits of the sha256 over the sorted "name:sha256" lines of map.ply, raw.ply,
-graph.json (and field.npy, regions.npy when present): the same content gives the same version, a rebuilt or replaced site a new
-one.
+graph.json (and field.npy, regions.npy when present): the same content gives the same version, a rebuilt or
+replaced site a new one.
 `Site.load` checks every hash and raises BundleIntegrityError naming the file that does not match.
 """
 
