@@ -790,16 +790,26 @@ class Localizer:
                         renders: dict[int, np.ndarray]) -> list[Candidate]:
         """The copies of the winner's view (`_twin_views`, from refined[0]) that stand as its rivals: within the
         ambiguity margin of its view agreement, or showing the same along the frame's rays
-        (RegionConfig.twin_agreement), as `_view_rivals` has them. Each is added to `candidates`."""
+        (RegionConfig.twin_agreement): `_look_alike`, as `_view_rivals` has them. Each is added to `candidates`."""
         score, out = refined[0][0], refined[0][1]
         twins = self._twin_views(scan, out.T_map_camera, center_camera, candidates, renders, len(refined), score)
         if id(out) not in renders:
             renders[id(out)] = scan.view.render(self.field, out.T_map_camera)[0]
-        mine, mc = renders[id(out)], self.config.match
-        standing = [t[2] for t in twins if score - t[0] < mc.ambiguity_margin
-                    or scan.view.agreement(renders[id(t[1])], mine)[0] >= self.config.regions.twin_agreement]
+        if not twins:
+            return []
+        alike = self._look_alike(scan, score, np.array([t[0] for t in twins]),
+                                 np.stack([renders[id(t[1])] for t in twins]), renders[id(out)])
+        standing = [t[2] for t, a in zip(twins, alike) if a]
         candidates.extend(standing)
         return standing
+
+    def _look_alike(self, scan: Scan, score: float, scores: np.ndarray, rendered: np.ndarray,
+                    mine: np.ndarray) -> np.ndarray:
+        """(h,) bool: which of h poses the answer cannot be told from — their view agreement `scores` within the
+        ambiguity margin of the answer's `score`, or their renders `rendered` ((h, r)) showing what the answer's
+        render `mine` ((r,)) shows along RegionConfig.twin_agreement of the frame's rays."""
+        return ((score - scores < self.config.match.ambiguity_margin)
+                | (scan.view.agreement(rendered, mine) >= self.config.regions.twin_agreement))
 
     def _objects_explained(self, scan: Scan, T_map_camera: np.ndarray) -> float:
         """The share of the frame's points (`Scan.down`) in labelled objects that have a map node of their class
@@ -819,7 +829,7 @@ class Localizer:
         with the refined winner, the other candidates with the winner's candidate as the field alignment left both
         (a refined pose would beat an unrefined one by the refinement alone). The margin is to the best distinct
         pose, 0 when a twin stands."""
-        rg, mc = self.config.regions, self.config.match
+        mc = self.config.match
         score, out, winner, _ = refined[0]
         T, mine = out.T_map_camera, renders[id(out)]
         rivals, margin, has_rival = [], score, False
@@ -829,15 +839,16 @@ class Localizer:
             if id(o_r) not in renders:  # a rival left unrefined (it saw through the map at its coarse pose)
                 renders[id(o_r)] = scan.view.render(self.field, o_r.T_map_camera)[0]
             has_rival, margin = True, min(margin, score - s_r)
-            if score - s_r < mc.ambiguity_margin or scan.view.agreement(renders[id(o_r)], mine)[0] >= rg.twin_agreement:
+            if self._look_alike(scan, score, np.array([s_r]), renders[id(o_r)][None], mine)[0]:
                 rivals.append(next(c for c in candidates if c.T_map_camera is o_r.T_map_camera))
         done = [r[1].T_map_camera for r in refined] + [r[2].T_map_camera for r in refined]
         rest = [c for c in candidates if all(self._distinct(c.T_map_camera, D) for D in done)]
         if rest:
             has_rival = True
-            same = scan.view.agreement(np.stack([c.rendered for c in rest]), winner.rendered)
+            alike = self._look_alike(scan, winner.score, np.array([c.score for c in rest]),
+                                     np.stack([c.rendered for c in rest]), winner.rendered)
             margin = min(margin, winner.score - max(c.score for c in rest))
-            rivals += [c for c, m in zip(rest, same) if winner.score - c.score < mc.ambiguity_margin or m >= rg.twin_agreement]
+            rivals += [c for c, a in zip(rest, alike) if a]
         if any(r.score < score - mc.ambiguity_margin for r in rivals):
             margin = 0.0  # a twin: the same view, however the noise ranked it
         return has_rival, margin, rivals
