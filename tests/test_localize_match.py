@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from cadreg.geometry import invert_T, make_T, pose_errors, rotation_between, transform_points
+from cadreg.geometry import invert_T, make_T, pose_errors, rotation_angle_deg, rotation_between, transform_points
 from cadreg.localize.match import (Hypotheses, MapGraph, distinct_best, gravity_hypotheses, kabsch_hypotheses,
                                    score_graph)
 from cadreg.localize.score import DistanceField, score_poses
@@ -135,3 +135,21 @@ def test_distinct_best_suppresses_near_duplicates() -> None:
     R = np.stack([np.eye(3)] * 3)
     t = np.array([[0, 0, 0], [0.05, 0, 0], [1.0, 0, 0]])
     assert distinct_best(R, t, np.arange(3), count=5) == [0, 2]
+
+
+def test_distinct_best_keeps_what_pairwise_tests_keep() -> None:
+    # The compiled suppression against the rule written out: kept in order, each farther than the minimum from, or
+    # turned more than the minimum against, every one kept before it.
+    rng = np.random.default_rng(3)
+    for trial in range(10):
+        h = int(rng.integers(1, 800))
+        R = Rotation.from_rotvec(rng.normal(scale=0.3, size=(h, 3))).as_matrix()
+        t = rng.uniform(0.0, 1.0, size=(h, 3))
+        order, count = rng.permutation(h), int(rng.integers(1, 40))
+        expected: list[int] = []
+        for i in order:
+            if len(expected) < count and all(np.linalg.norm(t[i] - t[k]) > 0.25 or rotation_angle_deg(R[i].T @ R[k]) > 15.0
+                                             for k in expected):
+                expected.append(int(i))
+        assert distinct_best(R, t, order, count=count) == expected
+    assert distinct_best(R, t, np.array([], dtype=np.int64), count=3) == []

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from cadreg.camera import CameraIntrinsics
@@ -65,6 +66,20 @@ def test_a_cropped_fine_target_refines_as_the_whole_map_does(scene_and_frame) ->
     cropping.crop_fine_target = False
     whole = cropping.fine_target_around(placed, 0.3)
     assert around[0].size() < 0.8 * whole[0].size() and cropping.fine_target_around(placed, 0.3) is whole
+
+
+def test_the_crop_holds_every_map_point_within_its_margin_of_the_frame(scene_and_frame) -> None:
+    scene, frame, T, rmap = scene_and_frame
+    placed = transform_points(T, frame_to_points(frame).xyz)
+    xyz = scene.site.map.points
+    gap, _ = cKDTree(placed).query(xyz)
+    for margin in (0.1, 0.3, 0.5):
+        kept = np.zeros(len(xyz), dtype=bool)
+        kept[rmap.near(placed, margin)] = True
+        assert kept[gap <= margin].all()
+        # Beyond the margin only what shares cells with it (at most 2.3 margins away), and not most of the box.
+        assert gap[kept].max() <= 2.31 * margin
+        assert kept.sum() < 0.9 * np.all((xyz >= placed.min(0) - margin) & (xyz <= placed.max(0) + margin), axis=1).sum()
 
 
 def test_color_gicp_agrees_with_small_gicp(scene_and_frame) -> None:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from cadreg.localize.score import DistanceField, inlier_score, score_poses
+from cadreg.localize.score import DistanceField, building_field, inlier_score, score_poses
 
 
 def test_field_reads_the_nearest_map_distance_and_the_truncation_outside() -> None:
@@ -21,6 +21,25 @@ def test_field_reads_the_nearest_map_distance_and_the_truncation_outside() -> No
     assert np.max(np.abs(field.lookup(probes) - exact)) <= np.sqrt(3) * 0.03 / 2 + 0.03
     far = np.array([[50.0, 0.5, 0.5], [0.5, -40.0, 0.5], [np.nan, 0.5, 0.5], [0.5, np.inf, 0.5], [0.5, 0.5, -np.inf]])
     assert np.all(field.lookup(far) == np.float32(0.5))
+
+
+@pytest.mark.parametrize("stored", [False, True])
+def test_a_coarse_field_is_a_lower_bound_within_its_cell(stored: bool) -> None:
+    rng = np.random.default_rng(2)
+    room = rng.uniform([0, 0, 0], [2, 1.5, 1], size=(3000, 3))
+    field = (DistanceField.from_grid(building_field([room], voxel_m=0.03)) if stored
+             else DistanceField(room, voxel_m=0.03))
+    coarse = field.coarsened(4)
+    assert coarse.voxel_m == pytest.approx(0.12) and coarse.grid.dtype == field.grid.dtype
+    assert np.all(coarse.dims == -(-field.dims // 4)) and coarse.grid.size == np.prod(coarse.dims + 2)
+    probes = rng.uniform([-0.5, -0.5, -0.5], [2.5, 2.0, 1.5], size=(20000, 3))
+    fine, low = field.lookup(probes), coarse.lookup(probes)
+    assert np.all(low <= fine + 1e-6)
+    # The least distance of a cell's fine cells: within its diagonal of every fine value in it.
+    assert np.max(fine - low) <= np.sqrt(3) * 0.12 + 0.03
+    assert np.any(fine - low > 0.03)  # and coarse: not the fine field again
+    # Beyond the map, the truncation distance, as the fine field reads it.
+    assert np.all(coarse.lookup(np.array([[50.0, 0.5, 0.5], [np.nan, 0.5, 0.5]])) == np.float32(0.5))
 
 
 def test_score_poses_scores_each_pose_like_one_lookup() -> None:

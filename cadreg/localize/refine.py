@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import small_gicp
+from scipy.ndimage import maximum_filter
 from scipy.spatial import cKDTree
 
 from ..errors import InvalidArgument
@@ -25,9 +26,12 @@ GICP_NEIGHBORS = 10
 FITNESS_VOXEL_M = 0.02
 # Fewer frame points than this inside the ROI cannot carry a GICP: refine with the whole frame instead.
 MIN_ROI_POINTS = 100
-# A cropped fine target holds the map points this far around the box of the frame points at their starting pose:
-# the wide pass's correspondences (2.5 x max_correspondence_m) plus what a field-aligned start may still be off.
-CROP_START_OFF_M = 0.5
+# A cropped fine target holds the map points this far around the frame points at their starting pose: the wide
+# pass's correspondences (2.5 x max_correspondence_m) plus what its start may be off, as far as that pass reaches
+# (with 0.1 m a repeated 100-room view refined to a pose 0.17 worse along the rays and lost its room).
+CROP_START_OFF_M = 0.25
+# The crop's cells are this fraction of its margin: finer cells keep fewer points beyond the margin, and cost more.
+CROP_CELLS_PER_MARGIN = 3
 
 
 def crop_to_roi(points: FramePoints, radius_m: float,
@@ -127,15 +131,30 @@ class RefineMap:
     def fine_target_around(self, xyz_map: np.ndarray,
                            margin_m: float) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
         """small_gicp's fine target for frame points placed at xyz_map ((n, 3), map frame): the whole map's when it is
-        built or this map does not crop (`crop_fine_target`), else one of the map points within margin_m of their
-        box (not kept)."""
+        built or this map does not crop (`crop_fine_target`), else one of the map points within margin_m of them
+        (`near`; not kept)."""
         if self._sg_fine is not None or not self.crop_fine_target or len(xyz_map) == 0:
             return self.fine_target()
-        lo, hi = xyz_map.min(axis=0) - margin_m, xyz_map.max(axis=0) + margin_m
-        inside = np.all((self.xyz >= lo) & (self.xyz <= hi), axis=1)
-        if np.count_nonzero(inside) < MIN_ROI_POINTS:
+        inside = self.near(xyz_map, margin_m)
+        if len(inside) < MIN_ROI_POINTS:
             return self.fine_target()
         return small_gicp.preprocess_points(self.xyz[inside], self.fine_voxel_m, num_neighbors=GICP_NEIGHBORS)
+
+    def near(self, xyz_map: np.ndarray, margin_m: float) -> np.ndarray:
+        """Indices of the map points within margin_m of the points xyz_map ((n, 3), map frame), and some up to
+        2.3 times as far (the diagonal of the cells): those whose cell (a CROP_CELLS_PER_MARGIN-th of the margin) lies within the margin's cells of
+        a cell of xyz_map. GICP's covariances cost about 1 ms per thousand target points, and the box around a
+        frame's points (grown by the margin) held 1.5-2 times the points near them."""
+        lo, hi = xyz_map.min(axis=0) - margin_m, xyz_map.max(axis=0) + margin_m
+        in_box = np.flatnonzero(np.all((self.xyz >= lo) & (self.xyz <= hi), axis=1))
+        cell = margin_m / CROP_CELLS_PER_MARGIN
+        shape = np.floor((hi - lo) / cell).astype(np.int64) + 1
+        occupied = np.zeros(shape, dtype=np.uint8)
+        occupied[tuple(np.floor((xyz_map - lo) / cell).astype(np.int64).T)] = 1
+        # Within k cells along every axis: a point within margin_m of a frame point is at most k cells from its cell.
+        reach = maximum_filter(occupied, size=2 * CROP_CELLS_PER_MARGIN + 1, mode="constant")
+        cells = np.minimum(np.floor((self.xyz[in_box] - lo) / cell).astype(np.int64), shape - 1)
+        return in_box[reach[tuple(cells.T)] > 0]
 
     def coarse_target(self) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
         """small_gicp's map at coarse_voxel_m and its KD-tree."""

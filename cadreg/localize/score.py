@@ -7,6 +7,8 @@ hypotheses per frame stay cheap. scipy's exact Euclidean distance transform does
 
 from __future__ import annotations
 
+from functools import reduce
+
 import numpy as np
 from scipy.ndimage import distance_transform_edt, minimum_filter
 
@@ -60,6 +62,31 @@ class DistanceField:
         d = self.dims + 2
         self._strides = np.array([d[1] * d[2], d[2], 1], dtype=np.int64)
         return self
+
+    def coarsened(self, factor: int) -> "DistanceField":
+        """This field with cells `factor` times as large (same origin), each holding the least distance of the cells
+        it covers: a lower bound, off by at most a coarse cell's diagonal, in 1 / factor³ of the memory. A
+        building's field is 100-400 MB, and a frame's first look at its 30-160 k graph hypotheses reads it at
+        random: 25 ns a read from the fine field, a few from a coarse one that stays in the processor's cache."""
+        factor = int(factor)
+        fine = self.grid.reshape(tuple(self.dims + 2))[1:-1, 1:-1, 1:-1]
+        dims = -(-self.dims // factor)  # ceil
+        far = np.asarray(self.truncate_m if self.step_m is None else QUANT_MAX, dtype=self.grid.dtype)
+        blocks = np.full(tuple(dims * factor), far, dtype=self.grid.dtype)
+        blocks[: fine.shape[0], : fine.shape[1], : fine.shape[2]] = fine
+        for axis in range(3):  # the least of each run of `factor` cells, one axis at a time (a pass reads it once)
+            runs = [blocks[(slice(None),) * axis + (slice(k, None, factor),)] for k in range(factor)]
+            blocks = reduce(np.minimum, runs)
+        out = DistanceField.__new__(DistanceField)
+        out.voxel_m = self.voxel_m * factor
+        out.origin = self.origin.copy()
+        out.dims = dims
+        out.truncate_m = self.truncate_m
+        out.step_m = self.step_m
+        out.grid = np.pad(blocks, 1, constant_values=far).ravel()
+        d = dims + 2
+        out._strides = np.array([d[1] * d[2], d[2], 1], dtype=np.int64)
+        return out
 
     def surface_points(self, spacing_m: float) -> np.ndarray:
         """(m, 3) float64 centres of the cells within half a voxel of the map, thinned to one per `spacing_m` cube

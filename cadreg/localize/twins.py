@@ -9,12 +9,15 @@ up and a shift are copies, and the pose of a view in one room, moved by that tra
 other. What the other room really shows there is then a render away (`field_view.py`).
 
 Written here: the object layouts are matched by a RANSAC over pairs of same-class objects (no library matches
-small labelled point sets under a 4-DoF transform); numpy scores every pair's transform at once.
+small labelled point sets under a 4-DoF transform), a compiled loop over every pair's transform.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
 
 from ..geometry import rotation_between
 from .match import MapGraph
@@ -76,34 +79,65 @@ class RoomTwins:
         """T (4, 4, map frame) taking the objects `na` onto the objects `nb`, or None when they are no copies."""
         if min(len(na), len(nb)) < MIN_SHARED:
             return None
-        pa, pb, ca, cb = self._level[na], self._level[nb], self._cls[na], self._cls[nb]
-        i, j = np.triu_indices(len(na), 1)
-        k, m = np.nonzero(~np.eye(len(nb), dtype=bool))  # ordered pairs of b's objects
-        da = np.linalg.norm(pa[j, :2] - pa[i, :2], axis=1)
-        db = np.linalg.norm(pb[m, :2] - pb[k, :2], axis=1)
-        ok = ((ca[i][:, None] == cb[k][None]) & (ca[j][:, None] == cb[m][None])
-              & (np.abs(da[:, None] - db[None]) < PAIR_TOLERANCE_M) & (da[:, None] >= MIN_PAIR_M))
-        p, q = np.nonzero(ok)
-        if not len(p):
+        inliers, yaw, tx, ty = _best_turn(self._level[na], self._level[nb], self._cls[na], self._cls[nb],
+                                          MIN_PAIR_M, PAIR_TOLERANCE_M, MATCH_TOLERANCE_M)
+        if inliers < max(MIN_SHARED, MIN_SHARED_SHARE * min(len(na), len(nb))):
             return None
-        va, vb = pa[j[p], :2] - pa[i[p], :2], pb[m[q], :2] - pb[k[q], :2]
-        yaw = np.arctan2(vb[:, 1], vb[:, 0]) - np.arctan2(va[:, 1], va[:, 0])
         c, s = np.cos(yaw), np.sin(yaw)
-        Rz = np.zeros((len(yaw), 3, 3))
-        Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
-        t = pb[k[q]] - np.einsum("hij,hj->hi", Rz, pa[i[p]])
-        t[:, 2] = 0.0  # rooms of one floor: heights stay
-        moved = np.einsum("hij,nj->hni", Rz, pa) + t[:, None, :]  # (h, |a|, 3)
-        d = np.linalg.norm(moved[:, :, None, :] - pb[None, None], axis=3)  # (h, |a|, |b|)
-        d = np.where(ca[:, None] == cb[None, :], d, np.inf)
-        near = d.min(axis=2)
-        inliers = (near < MATCH_TOLERANCE_M).sum(axis=1)
-        residual = np.where(near < MATCH_TOLERANCE_M, near, 0.0).sum(axis=1)
-        best = int(np.lexsort((residual, -inliers))[0])
-        if inliers[best] < max(MIN_SHARED, MIN_SHARED_SHARE * min(len(na), len(nb))):
-            return None
         T_level = np.eye(4)
-        T_level[:3, :3], T_level[:3, 3] = Rz[best], t[best]
+        T_level[:2, :2] = [[c, -s], [s, c]]
+        T_level[:2, 3] = tx, ty  # rooms of one floor: heights stay
         L = np.eye(4)
         L[:3, :3] = self._R_level
         return L.T @ T_level @ L  # level frame -> map frame
+
+
+def warm() -> None:
+    """Compile (or load from numba's cache) the RANSAC's loop (`field_kernels.warm`)."""
+    p, c = np.zeros((1, 3)), np.zeros(1, dtype=np.int64)
+    _best_turn(p, p, c, c, MIN_PAIR_M, PAIR_TOLERANCE_M, MATCH_TOLERANCE_M)
+
+
+@njit(cache=True, nogil=True)
+def _best_turn(pa, pb, ca, cb, min_pair_m, pair_tolerance_m, match_tolerance_m):
+    """The RANSAC: each pair of a's objects at least min_pair_m apart, put on each ordered pair of b's objects of
+    the same classes whose length agrees within pair_tolerance_m, fixes a turn about up (level frame, z up) and a
+    level shift; the one that brings the most of a's objects within match_tolerance_m of one of b's of their
+    class (then the least summed distance; then the first) -> (inliers, yaw, tx, ty), inliers -1 when no pair
+    fits. Compiled: a room's row of a 100-room building is 99 of these, and as numpy passes over small arrays each
+    cost 0.2 ms (23 ms of a 100-room frame that comes to a new room)."""
+    best_inliers, best_residual = -1, np.inf
+    best_yaw = best_tx = best_ty = 0.0
+    for i in range(len(pa)):
+        for j in range(i + 1, len(pa)):
+            ax, ay = pa[j, 0] - pa[i, 0], pa[j, 1] - pa[i, 1]
+            da = math.sqrt(ax * ax + ay * ay)
+            if da < min_pair_m:
+                continue
+            for k in range(len(pb)):
+                if cb[k] != ca[i]:
+                    continue
+                for m in range(len(pb)):
+                    if m == k or cb[m] != ca[j]:
+                        continue
+                    bx, by = pb[m, 0] - pb[k, 0], pb[m, 1] - pb[k, 1]
+                    if abs(da - math.sqrt(bx * bx + by * by)) >= pair_tolerance_m:
+                        continue
+                    yaw = math.atan2(by, bx) - math.atan2(ay, ax)
+                    c, s = math.cos(yaw), math.sin(yaw)
+                    tx = pb[k, 0] - (c * pa[i, 0] - s * pa[i, 1])
+                    ty = pb[k, 1] - (s * pa[i, 0] + c * pa[i, 1])
+                    inliers, residual = 0, 0.0
+                    for u in range(len(pa)):
+                        mx, my = c * pa[u, 0] - s * pa[u, 1] + tx, s * pa[u, 0] + c * pa[u, 1] + ty
+                        near = np.inf
+                        for v in range(len(pb)):
+                            if cb[v] == ca[u]:
+                                near = min(near, math.sqrt((mx - pb[v, 0]) ** 2 + (my - pb[v, 1]) ** 2
+                                                           + (pa[u, 2] - pb[v, 2]) ** 2))
+                        if near < match_tolerance_m:
+                            inliers += 1
+                            residual += near
+                    if inliers > best_inliers or (inliers == best_inliers and residual < best_residual):
+                        best_inliers, best_residual, best_yaw, best_tx, best_ty = inliers, residual, yaw, tx, ty
+    return best_inliers, best_yaw, best_tx, best_ty
