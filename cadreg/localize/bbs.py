@@ -309,14 +309,14 @@ def polish(field: DistanceField, points_camera: np.ndarray, hyp: Hypotheses, up:
     best = score_poses(field, points_camera, R, t, tau_m=tau_m)
     for _ in range(rounds):
         dR = yaw_rotations(up, np.radians(np.array([-step_deg, 0.0, step_deg])))  # (3, 3, 3)
-        for h in range(len(R)):
-            Rc = np.einsum("yij,jk->yik", dR, R[h])  # about the map's up, through the camera
-            Rs = np.repeat(Rc, len(grid), axis=0)
-            ts = np.tile(t[h] + grid * step_m, (len(dR), 1))
-            s = score_poses(field, points_camera, Rs, ts, tau_m=tau_m)
-            k = int(np.argmax(s))
-            if s[k] > best[h]:
-                R[h], t[h], best[h] = Rs[k], ts[k], s[k]
+        # Every hypothesis's 81 neighbours scored in one call, yaw-major as (yaw, offset) pairs.
+        Rs = np.repeat(np.einsum("yij,hjk->hyik", dR, R), len(grid), axis=1).reshape(-1, 3, 3)
+        ts = np.tile((t[:, None, :] + grid[None] * step_m), (1, len(dR), 1)).reshape(-1, 3)
+        s = score_poses(field, points_camera, Rs, ts, tau_m=tau_m).reshape(len(R), -1)
+        k = np.argmax(s, axis=1)
+        better = np.flatnonzero(s[np.arange(len(R)), k] > best)
+        moved = better * s.shape[1] + k[better]
+        R[better], t[better], best[better] = Rs[moved], ts[moved], s[better, k[better]]
         step_m, step_deg = step_m / 2, step_deg / 2
     out = Hypotheses(R, t, hyp.seed)
     out.geometric = best

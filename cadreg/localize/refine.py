@@ -107,8 +107,9 @@ class RefineMap:
         # 2x faster for points on the map but has no distance bound, and for points off it (a wrong hypothesis, a
         # frame looking past the map's edge) it took 30 ms for 1000 points where the bounded cKDTree takes 0.8.
         # Midpoint splits without shrunk boxes (balanced_tree, compact_nodes off): half the build (15 ms where a
-        # building's region map of 120 k points took 30), and its queries were no slower.
-        self.fit_tree = cKDTree(self.fit_xyz, balanced_tree=False, compact_nodes=False)
+        # building's region map of 120 k points took 30), and its queries were no slower; leaves of 32 points
+        # rather than 16, a sixth less again (21 -> 17 ms for 150 k points), queries as fast.
+        self.fit_tree = cKDTree(self.fit_xyz, leafsize=32, balanced_tree=False, compact_nodes=False)
         self._color_targets: list[ColorGicpTarget] | None = None
         self._o3d_targets: list | None = None
 
