@@ -7,7 +7,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from cadreg.geometry import invert_T, make_T, pose_errors, rotation_angle_deg, rotation_between, transform_points
-from cadreg.localize.match import (Hypotheses, MapGraph, distinct_best, gravity_hypotheses, kabsch_hypotheses,
+from cadreg.localize.match import (PAIR_REACH_M, Hypotheses, MapGraph, distinct_best, gravity_hypotheses, kabsch_hypotheses,
                                    score_graph)
 from cadreg.localize.score import DistanceField, score_poses
 
@@ -40,6 +40,30 @@ def test_gravity_pairs_recover_the_pose_and_sim_prefers_it() -> None:
     # Sim ranks the true pose at the top (ties allowed), well above the median hypothesis
     assert hyp.sim[best] >= hyp.sim.max() - 1e-9 and hyp.sim[best] > np.median(hyp.sim) + 0.3
     assert list(hyp.assignment[best]) == seen
+
+
+def test_pair_index_holds_the_node_pairs_within_its_reach_and_far_pairs_match_too() -> None:
+    rng = np.random.default_rng(5)
+    cent = np.column_stack([rng.uniform(0, 30, 200), rng.uniform(0, 20, 200), rng.uniform(0.3, 0.8, 200)])
+    g = MapGraph([f"n{i}" for i in range(200)], rng.integers(0, 3, 200), cent, np.full((200, 3), 0.5))
+    D = np.linalg.norm(cent[:, None] - cent[None], axis=-1)
+    for ca, cb in ((0, 0), (0, 2), (2, 1)):
+        A, B, d = g.pairs_of_classes(ca, cb)
+        a, b = np.nonzero((D <= PAIR_REACH_M) & (g.cls[:, None] == ca) & (g.cls[None, :] == cb))
+        keep = a != b
+        assert sorted(zip(A.tolist(), B.tolist())) == sorted(zip(a[keep].tolist(), b[keep].tolist()))
+        assert np.all(np.diff(d) >= 0) and np.array_equal(d, D[A, B])
+    # Two objects within the reach and two beyond it (matched against every node pair): each pair finds the pose.
+    T = make_T(Rotation.from_euler("zx", [-64.0, -110.0], degrees=True).as_matrix(), [12.0, 9.0, 1.4])
+    up_cam = T[:3, :3].T @ [0, 0, 1.0]
+    R_level = rotation_between(up_cam, np.array([0, 0, 1.0]))
+    near = np.argwhere((D > 1.0) & (D < 3.0))[0]
+    far = np.argwhere(D > PAIR_REACH_M + 1.0)[0]
+    for seen in (near, far):
+        scan = transform_points(invert_T(T), cent[seen])
+        hyp = gravity_hypotheses(scan, g.cls[seen], g, R_level=R_level, up=np.array([0, 0, 1.0]), camera_height_m=None)
+        errs = np.array([pose_errors(hyp.T(i), T) for i in range(len(hyp))])
+        assert np.min(errs[:, 0] + errs[:, 1] / 100) < 1e-4
 
 
 def test_each_object_is_assigned_the_nearest_node_of_its_class_within_the_radius() -> None:
