@@ -6,9 +6,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from cadreg.geometry import invert_T, make_T, pose_errors, rotation_angle_deg, rotation_between, transform_points
-from cadreg.localize.match import (PAIR_REACH_M, Hypotheses, MapGraph, distinct_best, gravity_hypotheses, kabsch_hypotheses,
-                                   score_graph)
+from cadreg.geometry import (invert_T, make_T, pose_errors, rotation_angle_deg, rotation_between,
+                             transform_points)
+from cadreg.localize.match import (PAIR_REACH_M, Hypotheses, MapGraph, distinct_best, gravity_hypotheses,
+                                   kabsch_hypotheses, score_graph)
 from cadreg.localize.score import DistanceField, score_poses
 
 

@@ -18,7 +18,7 @@ from numba import njit
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from ..geometry import kabsch_many, rotation_angle_deg
+from ..geometry import kabsch_many
 
 # Node pairs this far apart at most are indexed by distance (`MapGraph.pairs_of_classes`); a frame's objects
 # farther apart than this (less the pair tolerance) are matched against every node pair of their classes.

@@ -143,9 +143,9 @@ class RefineMap:
 
     def near(self, xyz_map: np.ndarray, margin_m: float) -> np.ndarray:
         """Indices of the map points within margin_m of the points xyz_map ((n, 3), map frame), and some up to
-        2.3 times as far (the diagonal of the cells): those whose cell (a CROP_CELLS_PER_MARGIN-th of the margin) lies within the margin's cells of
-        a cell of xyz_map. GICP's covariances cost about 1 ms per thousand target points, and the box around a
-        frame's points (grown by the margin) held 1.5-2 times the points near them."""
+        2.3 times as far (the diagonal of the cells): those whose cell (a CROP_CELLS_PER_MARGIN-th of the margin)
+        lies within the margin's cells of a cell of xyz_map. GICP's covariances cost about 1 ms per thousand target
+        points, and the box around a frame's points (grown by the margin) held 1.5-2 times the points near them."""
         lo, hi = xyz_map.min(axis=0) - margin_m, xyz_map.max(axis=0) + margin_m
         in_box = np.flatnonzero(np.all((self.xyz >= lo) & (self.xyz <= hi), axis=1))
         cell = margin_m / CROP_CELLS_PER_MARGIN
