@@ -919,7 +919,8 @@ class Localizer:
         # 0.44-1.15 cm (one standard deviation) and every right one at most 0.28; on 7-Scenes the right ones 0.34.
         # Only a pose the geometry alone found is held to it: the graph's object matches pin a pose along the
         # directions the refinement leaves free (it does not move it there), and in the 10-room building right
-        # graph answers could slide 0.44-0.54 cm.
+        # graph answers could slide 0.44-0.54 cm. The limit was 0.4 cm before the slide probe (`_slides`) tested
+        # what it stands for; right label-free answers in the buildings slide 0.41-0.56 cm (MatchConfig).
         std = pose_std_m(out.covariance)
         slide = 0.0 if by_objects else std
 
