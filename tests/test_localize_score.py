@@ -42,6 +42,22 @@ def test_a_coarse_field_is_a_lower_bound_within_its_cell(stored: bool) -> None:
     assert np.all(coarse.lookup(np.array([[50.0, 0.5, 0.5], [np.nan, 0.5, 0.5]])) == np.float32(0.5))
 
 
+@pytest.mark.parametrize("spacing_m", [0.03, 0.05, 0.1])
+def test_surface_points_are_the_occupied_cells_one_per_cube(spacing_m: float) -> None:
+    rng = np.random.default_rng(6)
+    room = rng.uniform([0, 0, 0], [2, 1.5, 1], size=(3000, 3))
+    field = DistanceField.from_grid(building_field([room], voxel_m=0.03))
+    got = field.surface_points(spacing_m)
+    # Written out: the cells within half a voxel of the map, one per thinned cube (its first corner), in order.
+    d = field.dims + 2
+    ijk = np.stack(np.unravel_index(np.flatnonzero(field.grid <= 0.015 / field.step_m), tuple(d)), axis=1)
+    thin = max(1, int(round(spacing_m / 0.03)))
+    expected = field.origin + (np.unique(ijk // thin, axis=0) * thin - 1 + 0.5) * 0.03
+    assert np.array_equal(got, expected)
+    # Each within its cube's diagonal of a map point (an occupied cell's point lies anywhere in it).
+    assert np.max(cKDTree(room).query(got)[0]) <= 0.03 * np.sqrt(3) * (thin - 0.5) + 1e-6
+
+
 def test_score_poses_scores_each_pose_like_one_lookup() -> None:
     rng = np.random.default_rng(1)
     room = rng.uniform([0, 0, 0], [2, 1.5, 1], size=(4000, 3))

@@ -96,7 +96,12 @@ class DistanceField:
         d = self.dims + 2
         ijk = np.stack(np.unravel_index(cells, tuple(d)), axis=1)
         thin = max(1, int(round(spacing_m / self.voxel_m)))
-        ijk = np.unique(ijk // thin, axis=0) * thin
+        if thin > 1:  # (the cells are unique and in order already)
+            # One flat index per thinned cube, made unique as integers: the cubes in the (C) order of unique rows,
+            # without sorting rows (2.7 of the 3.5 s a 100-room worker spent on its label-free search's grids).
+            blocks = tuple(-(-d // thin))
+            flat = np.unique(np.ravel_multi_index(tuple((ijk // thin).T), blocks))
+            ijk = np.stack(np.unravel_index(flat, blocks), axis=1) * thin
         return self.origin + (ijk - 1 + 0.5) * self.voxel_m
 
     def lookup(self, points: np.ndarray) -> np.ndarray:
