@@ -7,8 +7,6 @@ hypotheses per frame stay cheap. scipy's exact Euclidean distance transform does
 
 from __future__ import annotations
 
-from functools import reduce
-
 import numpy as np
 from scipy.ndimage import distance_transform_edt, minimum_filter
 
@@ -69,14 +67,11 @@ class DistanceField:
         building's field is 100-400 MB, and a frame's first look at its 30-160 k graph hypotheses reads it at
         random: 25 ns a read from the fine field, a few from a coarse one that stays in the processor's cache."""
         factor = int(factor)
-        fine = self.grid.reshape(tuple(self.dims + 2))[1:-1, 1:-1, 1:-1]
-        dims = -(-self.dims // factor)  # ceil
         far = np.asarray(self.truncate_m if self.step_m is None else QUANT_MAX, dtype=self.grid.dtype)
-        blocks = np.full(tuple(dims * factor), far, dtype=self.grid.dtype)
-        blocks[: fine.shape[0], : fine.shape[1], : fine.shape[2]] = fine
-        for axis in range(3):  # the least of each run of `factor` cells, one axis at a time (a pass reads it once)
-            runs = [blocks[(slice(None),) * axis + (slice(k, None, factor),)] for k in range(factor)]
-            blocks = reduce(np.minimum, runs)
+        blocks = self.grid.reshape(tuple(self.dims + 2))[1:-1, 1:-1, 1:-1]
+        for axis in range(3):
+            blocks = _least_of_runs(blocks, factor, axis, far)
+        dims = np.array(blocks.shape, dtype=np.int64)
         out = DistanceField.__new__(DistanceField)
         out.voxel_m = self.voxel_m * factor
         out.origin = self.origin.copy()
@@ -121,6 +116,18 @@ class DistanceField:
         return (field_kernels.read_only(self.grid), 1.0 if self.step_m is None else float(self.step_m),
                 field_kernels.floats(self.origin),
                 self.voxel_m, (self.dims + 1).astype(np.float64), self._strides)
+
+
+def _least_of_runs(a: np.ndarray, factor: int, axis: int, far: np.ndarray) -> np.ndarray:
+    """The least of each run of `factor` cells of `a` along `axis` (a shorter last run as it is): one pass over `a`,
+    and no copy of it (a building's field is memory-mapped, and a worker makes its coarse copy at start)."""
+    runs = -(-a.shape[axis] // factor)
+    out = np.full(a.shape[:axis] + (runs,) + a.shape[axis + 1:], far, dtype=a.dtype)
+    for k in range(factor):
+        part = a[(slice(None),) * axis + (slice(k, None, factor),)]
+        into = out[(slice(None),) * axis + (slice(0, part.shape[axis]),)]
+        np.minimum(into, part, out=into)
+    return out
 
 
 def building_field(clouds: list[np.ndarray], *, voxel_m: float = 0.03, margin_m: float = 0.3, truncate_m: float = 0.5,
