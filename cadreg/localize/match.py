@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from ..geometry import kabsch_many
+from . import field_kernels
 
 # Node pairs this far apart at most are indexed by distance (`MapGraph.pairs_of_classes`); a frame's objects
 # farther apart than this (less the pair tolerance) are matched against every node pair of their classes.
@@ -347,8 +348,8 @@ def distinct_best(R: np.ndarray, t: np.ndarray, order: np.ndarray, *, count: int
         return []
     # cos of the angle between R_i and R_k is (trace(R_i^T R_k) - 1) / 2, and trace(R_i^T R_k) = sum(R_i * R_k).
     min_trace = 1.0 + 2.0 * np.cos(np.radians(min_rotation_deg))
-    kept = _distinct_best(np.require(R, np.float64, "C"), np.require(t, np.float64, "C"),
-                          np.asarray(order, dtype=np.int64), count, min_translation_m ** 2, min_trace)
+    kept = _distinct_best(field_kernels.floats(R), field_kernels.floats(t), np.asarray(order, dtype=np.int64), count,
+                          min_translation_m ** 2, min_trace)
     return [int(i) for i in kept]
 
 

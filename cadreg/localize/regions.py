@@ -91,24 +91,22 @@ def region_grids(site: Site, regions: list[Region], *, cloud: str, halo_m: float
 def build_index(site: Site, regions: list[Region], region: Region, config: LocalizeConfig) -> RegionIndex:
     rc = config.refine
     stored = site.region_grids
-    if len(regions) > 1 and stored is not None and stored.matches(cloud=rc.map_points, halo_m=config.regions.halo_m,
-                                                                   voxel_m=FITNESS_VOXEL_M):
+    gridded = len(regions) > 1 and stored is not None and stored.matches(
+        cloud=rc.map_points, halo_m=config.regions.halo_m, voxel_m=FITNESS_VOXEL_M)
+    if gridded:
         # The region's grid as the bundle stores it: one read, no gather over its neighbours, no gridding (40 of
         # the 65 ms a 100-room building's region map took).
         k = next(i for i, r in enumerate(regions) if r.id == region.id)
         rows = stored.rows(k)
         xyz, rgb, cls = rows["xyz"].astype(np.float64), rows["rgb"] / 255.0, rows["cls"].astype(np.int64)
         stored.release(k)
-        refine_map = RefineMap(xyz, rgb, cls, fine_voxel_m=rc.fine_voxel_m, coarse_voxel_m=rc.coarse_voxel_m,
-                               color_scales_m=rc.color_scales_m, color_weight_m=rc.color_weight_m,
-                               crop_fine_target=True, gridded=True)
-        return RegionIndex(region, refine_map, ViewCheck(refine_map.xyz))
-    cloud = (region_cloud(site, region, rc.map_points) if len(regions) == 1
-             else halo_cloud(site, regions, region, rc.map_points, config.regions.halo_m))
-    refine_map = RefineMap(cloud.points.astype(np.float64), cloud.rgb01(), cloud.class_index,
-                           fine_voxel_m=rc.fine_voxel_m, coarse_voxel_m=rc.coarse_voxel_m,
+    else:
+        cloud = (region_cloud(site, region, rc.map_points) if len(regions) == 1
+                 else halo_cloud(site, regions, region, rc.map_points, config.regions.halo_m))
+        xyz, rgb, cls = cloud.points.astype(np.float64), cloud.rgb01(), cloud.class_index
+    refine_map = RefineMap(xyz, rgb, cls, fine_voxel_m=rc.fine_voxel_m, coarse_voxel_m=rc.coarse_voxel_m,
                            color_scales_m=rc.color_scales_m, color_weight_m=rc.color_weight_m,
-                           crop_fine_target=len(regions) > 1)
+                           crop_fine_target=len(regions) > 1, gridded=gridded)
     return RegionIndex(region, refine_map, ViewCheck(refine_map.xyz))
 
 
