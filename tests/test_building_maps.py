@@ -155,18 +155,20 @@ def test_region_structures_are_bounded_by_the_cache(twin_rooms_dir: Path, twin_s
     assert len(loc.maps.cached()) == 1
 
 
-def test_a_room_refines_against_crops_until_a_second_frame_comes_to_it(twin_rooms_dir: Path, twin_shared_view) -> None:
+def test_a_rooms_refinement_reads_its_region_map_and_keeps_what_it_made(twin_rooms_dir: Path, twin_shared_view) -> None:
     frame, _ = twin_shared_view
     loc = Localizer.from_site(Site.load(twin_rooms_dir))
     in_a = replace(frame, search_region=SearchRegion(region_ids=("a",)))
     first = loc.localize(in_a)
     a = loc.maps.index(loc.maps.regions[0])
-    # the first frame's refinements cropped the map around the frame: no whole target was built or kept
-    assert a.refine_map.crop_fine_target and a.refine_map._sg_fine is None
+    # the GICP paired the frame with the region's fitness grid: no small_gicp target, normals made where it paired
+    assert first.diagnostics.refinement.method == "grid_gicp" and a.refine_map._sg_fine is None
+    made = a.refine_map.normals.known
+    assert 0 < made < len(a.refine_map.fit_xyz)
     second = loc.localize(in_a)
-    assert not a.refine_map.crop_fine_target and a.refine_map._sg_fine is not None
+    assert a.refine_map.normals.known == made  # the same frame again pairs with the same points: nothing new made
     assert first.status == second.status == Status.OK
-    assert np.allclose(first.T_map_camera, second.T_map_camera, atol=1e-3)
+    assert np.allclose(first.T_map_camera, second.T_map_camera, atol=1e-9)
 
 
 def test_a_buildings_label_free_search_keeps_the_regions_node_budget(twin_rooms_dir: Path, twin_shared_view) -> None:

@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 from cadreg.camera import CameraIntrinsics
 from cadreg.geometry import make_T, pose_errors, transform_points
 from cadreg.localize.color_gicp import ColorGicpTarget, color_gicp, plane_covariances, prepare_cloud, rgb_to_lab
+from cadreg.localize.grid_gicp import PLANE_EPS, _linearize, plane_covariance, plane_normals, se3_exp
 from cadreg.localize.points import frame_to_points
 from cadreg.localize.refine import RefineMap
 from cadreg.localize.synthetic import look_pose, make_scene, render_frame
@@ -48,38 +49,59 @@ def test_methods_recover_a_perturbed_pose(scene_and_frame, method: str) -> None:
         assert np.all(np.linalg.eigvalsh(out.covariance) > 0)
 
 
-def test_a_cropped_fine_target_refines_as_the_whole_map_does(scene_and_frame) -> None:
+def test_a_buildings_gicp_on_its_fitness_grid_refines_as_small_gicp_does(scene_and_frame) -> None:
     scene, frame, T, rmap = scene_and_frame
     pts = frame_to_points(frame)
     site = scene.site
-    cropping = RefineMap(site.map.points, site.map.colors / 255.0, site.map.class_index, crop_fine_target=True)
-    T0 = _perturbed(T, seed=5, t_m=0.08, r_deg=3.0)
-    a = cropping.refine(pts, T0, method="small_gicp").T_map_camera
-    b = rmap.refine(pts, T0, method="small_gicp").T_map_camera
-    te, re_ = pose_errors(a, b)
-    assert te < 1e-3 and re_ < 0.05, (te, re_)
-    # The crop holds the map around the placed frame only, and is not kept; a map that no longer crops builds its
-    # whole target, kept.
-    placed = transform_points(T, pts.xyz)
-    around = cropping.fine_target_around(placed, 0.3)
-    assert around is not cropping.fine_target_around(placed, 0.3)
-    cropping.crop_fine_target = False
-    whole = cropping.fine_target_around(placed, 0.3)
-    assert around[0].size() < 0.8 * whole[0].size() and cropping.fine_target_around(placed, 0.3) is whole
+    grid = RefineMap(site.map.points, site.map.colors / 255.0, site.map.class_index, stored_target=True)
+    for seed in (0, 3):  # (starts from which both reach the pose: from some, both stop 4 cm off it, the same way)
+        T0 = _perturbed(T, seed=seed, t_m=0.08, r_deg=3.0)
+        a = grid.refine(pts, T0, method="small_gicp")
+        b = rmap.refine(pts, T0, method="small_gicp")
+        assert a.method == "grid_gicp" and b.method == "small_gicp"
+        # the same pose to a millimetre (the targets differ: the 2 cm fitness grid, small_gicp's 2.5 cm means)
+        te, re_ = pose_errors(a.T_map_camera, b.T_map_camera)
+        assert te < 2e-3 and re_ < 0.1, (seed, te, re_)
+        assert pose_errors(a.T_map_camera, T)[0] < 0.01
+        # and the same pose covariance (small_gicp's perturbation and error): what `pose_std_m` reads
+        std_a, std_b = (np.sqrt(np.linalg.eigvalsh(o.covariance[3:, 3:])[-1]) for o in (a, b))
+        assert 0.5 < std_a / std_b < 2.0, (std_a, std_b)
+    # no small_gicp target was built, and normals were made only for the map points the frame was paired with
+    assert grid._sg_fine is None and 0 < grid.normals.known < 0.5 * len(grid.fit_xyz)
 
 
-def test_the_crop_holds_every_map_point_within_its_margin_of_the_frame(scene_and_frame) -> None:
-    scene, frame, T, rmap = scene_and_frame
-    placed = transform_points(T, frame_to_points(frame).xyz)
-    xyz = scene.site.map.points
-    gap, _ = cKDTree(placed).query(xyz)
-    for margin in (0.1, 0.3, 0.5):
-        kept = np.zeros(len(xyz), dtype=bool)
-        kept[rmap.near(placed, margin)] = True
-        assert kept[gap <= margin].all()
-        # Beyond the margin only what shares cells with it (at most 2.3 margins away), and not most of the box.
-        assert gap[kept].max() <= 2.31 * margin
-        assert kept.sum() < 0.9 * np.all((xyz >= placed.min(0) - margin) & (xyz <= placed.max(0) + margin), axis=1).sum()
+def test_grid_gicp_terms_are_the_gicp_cost_written_out() -> None:
+    rng = np.random.default_rng(2)
+    xyz = rng.random((400, 3)) * [1.0, 1.0, 0.02]
+    tree = cKDTree(xyz)
+    normals = plane_normals(xyz, tree, np.arange(len(xyz)), 10)
+    # the plane covariance of a normal is small_gicp's regularized neighbourhood covariance, U diag(eps, 1, 1) Uᵀ
+    _, nn10 = tree.query(xyz, k=10)
+    nb = xyz[nn10] - xyz[nn10].mean(axis=1, keepdims=True)
+    _, U = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
+    regularized = np.einsum("nik,k,njk->nij", U, np.array([PLANE_EPS, 1.0, 1.0]), U)
+    assert np.allclose(plane_covariance(normals), regularized, atol=1e-9)
+    assert np.allclose(plane_covariances(xyz, tree, 10), regularized, atol=1e-9)
+    src = rng.random((200, 3))
+    src_normals = rng.normal(size=(200, 3))
+    src_normals /= np.linalg.norm(src_normals, axis=1, keepdims=True)
+    R, t = Rotation.from_rotvec([0.1, 0.2, -0.3]).as_matrix(), np.array([0.3, -0.2, 0.1])
+    nn, found = rng.integers(0, len(xyz), len(src)), rng.random(len(src)) < 0.8
+    H, b, Ms = np.zeros((6, 6)), np.zeros(6), np.zeros((len(src), 3, 3))
+    error, pairs = _linearize(src, src_normals, xyz, normals, nn, found, R, t, PLANE_EPS, H, b, Ms)
+    p, q = src[found], xyz[nn[found]]
+    r = q - (p @ R.T + t)
+    M = np.linalg.inv(plane_covariance(normals[nn[found]]) + R @ plane_covariance(src_normals[found]) @ R.T)
+    skew = np.cross(p[:, None, :], np.eye(3)[None, :, :])  # skew[m, k] = p x e_k: the columns of [p]x
+    J = np.concatenate([R @ np.transpose(skew, (0, 2, 1)), -np.broadcast_to(R, (len(p), 3, 3))], axis=2)
+    assert pairs == found.sum()
+    assert np.allclose(H, np.einsum("mki,mkl,mlj->ij", J, M, J)) and np.allclose(b, np.einsum("mki,mkl,ml->i", J, M, r))
+    assert np.isclose(error, np.einsum("mi,mij,mj->", r, M, r)) and np.allclose(Ms[found], M)
+    # the residual's derivative is J: a small step on the right moves r by J δ
+    delta = np.array([1e-4, -2e-4, 1e-4, 1e-4, 2e-4, -1e-4])
+    T = make_T(R, t) @ se3_exp(delta)
+    r2 = q - (p @ T[:3, :3].T + T[:3, 3])
+    assert np.allclose(r2 - r, J @ delta, atol=1e-7)
 
 
 def test_color_gicp_agrees_with_small_gicp(scene_and_frame) -> None:

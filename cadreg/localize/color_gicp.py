@@ -15,6 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from .grid_gicp import plane_covariance, plane_normals
 from .points import voxel_indices
 
 
@@ -28,16 +29,10 @@ def rgb_to_lab(rgb: np.ndarray) -> np.ndarray:
     return np.stack([116 * f[:, 1] - 16, 500 * (f[:, 0] - f[:, 1]), 200 * (f[:, 1] - f[:, 2])], axis=1)
 
 
-def plane_covariances(xyz: np.ndarray, tree: cKDTree | None = None, k: int = 10, eps: float = 1e-3) -> np.ndarray:
-    """(n, 3) points -> (n, 3, 3) GICP covariances: the k-neighbourhood's axes with eigenvalues (1, 1, eps)."""
-    tree = tree or cKDTree(xyz)
-    k = min(k, len(xyz))
-    _, nn = tree.query(xyz, k=k)
-    nb = xyz[nn.reshape(len(xyz), k)]
-    nb = nb - nb.mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", nb, nb) / k
-    _, U = np.linalg.eigh(cov)  # ascending eigenvalues: column 0 is the normal
-    return np.einsum("nik,k,njk->nij", U, np.array([eps, 1.0, 1.0]), U)
+def plane_covariances(xyz: np.ndarray, tree: cKDTree | None = None, k: int = 10) -> np.ndarray:
+    """(n, 3) points -> (n, 3, 3) GICP covariances: the k-neighbourhood's axes with eigenvalues (1, 1, PLANE_EPS)."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    return plane_covariance(plane_normals(xyz, tree or cKDTree(xyz), np.arange(len(xyz)), k))
 
 
 @dataclass

@@ -32,7 +32,7 @@ from ..site.regions import CAMERA_MARGIN_M, Region
 from .cluster import cluster_objects
 from .color_gicp import rgb_to_lab
 from .bbs import GridPyramid, map_direction_histogram, polish, yaw_candidates
-from . import field_kernels, match
+from . import field_kernels, grid_gicp, match
 from . import twins as room_twins
 from .fallback import FpfhRansac
 from .field_view import FieldView, align_on_field
@@ -192,7 +192,7 @@ class Localizer:
 
     def warm(self) -> "Localizer":
         """Build now what is otherwise built on first use (the map's FPFH features for the fallback, about a second
-        a site; the compiled loops of `field_kernels`, `match` and `twins`), so that a long-running server does not
+        a site; the compiled loops of `field_kernels`, `grid_gicp`, `match` and `twins`), so that a long-running server does not
         make its first requests pay for it."""
         if len(self.maps) == 1:
             self.refine_map.fine_target()
@@ -205,6 +205,7 @@ class Localizer:
         if self.config.label_free.enabled:
             self.pyramid()
         field_kernels.warm()
+        grid_gicp.warm()
         match.warm()
         room_twins.warm()
         return self
@@ -239,7 +240,6 @@ class Localizer:
         Raises InvalidFrame for a frame that cannot be registered, InvalidArgument for an unknown method.
         """
         method, top_k = self._check_request(frame, method, top_k)
-        self.maps.next_frame()
         diag = Diagnostics(site_id=self.site.site_id, bundle_version=self.site.version)
         timer = StageTimer(diag.stage_ms, progress)
         scan = self._scan(frame, diag, timer)

@@ -3,6 +3,8 @@
 The whole T_init is kept (the paper keeps only its translation). Three methods share one interface:
 `color_gicp` (hand-written colour-supported GICP, `color_gicp.py`), `small_gicp` (GICP, the map preprocessed once)
 and `open3d_colored_icp` (Open3D's coloured ICP, for comparison). All search structures are built once per site.
+In a building, `small_gicp` runs the same GICP written over the region map's fitness grid (`grid_gicp.py`, reported
+as `grid_gicp`): a small_gicp target per region and frame cost more than the rest of the refinement.
 """
 
 from __future__ import annotations
@@ -11,12 +13,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import small_gicp
-from scipy.ndimage import maximum_filter
 from scipy.spatial import cKDTree
 
 from ..errors import InvalidArgument
-from ..geometry import transform_points
 from .color_gicp import ColorGicpTarget, color_gicp, prepare_cloud, rgb_to_lab
+from .grid_gicp import MapNormals, gicp, plane_normals
 from .points import FramePoints, voxel_indices
 
 REFINE_METHODS = ("color_gicp", "small_gicp", "open3d_colored_icp")
@@ -26,12 +27,9 @@ GICP_NEIGHBORS = 10
 FITNESS_VOXEL_M = 0.02
 # Fewer frame points than this inside the ROI cannot carry a GICP: refine with the whole frame instead.
 MIN_ROI_POINTS = 100
-# A cropped fine target holds the map points this far around the frame points at their starting pose: the wide
-# pass's correspondences (2.5 x max_correspondence_m) plus what its start may be off, as far as that pass reaches
-# (with 0.1 m a repeated 100-room view refined to a pose 0.17 worse along the rays and lost its room).
-CROP_START_OFF_M = 0.25
-# The crop's cells are this fraction of its margin: finer cells keep fewer points beyond the margin, and cost more.
-CROP_CELLS_PER_MARGIN = 3
+# GICP's passes: correspondences this many times RefineConfig.max_correspondence_m (pulling in a start some
+# centimetres off), then that distance (keeping stray points out of the final estimate).
+WIDE_PASS = 2.5
 
 
 def crop_to_roi(points: FramePoints, radius_m: float,
@@ -74,11 +72,13 @@ class RefineMap:
     """The map as the refinement sees it (map frame, metres).
 
     xyz : (n, 3) float; rgb : (n, 3) float in [0, 1]. gridded : the points are one per fitness_voxel_m voxel already.
+    stored_target : a building's region map; its GICP pairs the frame with the fitness grid through the fitness
+    KD-tree (`grid_gicp.py`) instead of a small_gicp target of its own.
     """
 
     def __init__(self, xyz: np.ndarray, rgb: np.ndarray, class_index: np.ndarray | None = None, *, fine_voxel_m: float = 0.025, coarse_voxel_m: float = 0.08,
                  color_scales_m: tuple[float, ...] = (0.08, 0.04, 0.02), color_weight_m: float = 0.05,
-                 fitness_voxel_m: float = FITNESS_VOXEL_M, crop_fine_target: bool = False, gridded: bool = False) -> None:
+                 fitness_voxel_m: float = FITNESS_VOXEL_M, stored_target: bool = False, gridded: bool = False) -> None:
         self.xyz = np.asarray(xyz, dtype=np.float64)
         self.rgb = np.asarray(rgb, dtype=np.float64)
         self.fine_voxel_m = fine_voxel_m
@@ -90,12 +90,6 @@ class RefineMap:
         self._sg_fine: tuple[small_gicp.PointCloud, small_gicp.KdTree] | None = None
         # The coarse target likewise: a building's candidates are aligned on its distance field, not here.
         self._sg_coarse: tuple[small_gicp.PointCloud, small_gicp.KdTree] | None = None
-        # A building's region map (a room and the 3 m halo of its neighbours) often serves one frame's refinements
-        # before its cache drops it, and the whole fine target cost 200 ms of a 100-room building's frame: while
-        # `crop_fine_target` holds, refinements build a target of the map around the frame instead (a third of
-        # the cost, not kept: `fine_target_around`). The region cache clears it when a second frame comes to
-        # the region (`regions.RegionMaps.index`): a room frames keep coming from gets its whole target, kept.
-        self.crop_fine_target = crop_fine_target
         # Points already one per fitness voxel (a building's stored region grid) are their own grid.
         keep = np.arange(len(self.xyz)) if gridded else voxel_indices(self.xyz, fitness_voxel_m)
         self.fit_xyz = self.xyz[keep]
@@ -110,6 +104,10 @@ class RefineMap:
         # building's region map of 120 k points took 30), and its queries were no slower; leaves of 32 points
         # rather than 16, a sixth less again (21 -> 17 ms for 150 k points), queries as fast.
         self.fit_tree = cKDTree(self.fit_xyz, leafsize=32, balanced_tree=False, compact_nodes=False)
+        # A building's region map serves few refinements before its cache drops it: its GICP normals are made for
+        # the points those pair with, not for the whole map (`grid_gicp.py`).
+        self.stored_target = stored_target
+        self.normals = MapNormals(self.fit_xyz, self.fit_tree, GICP_NEIGHBORS) if stored_target else None
         self._color_targets: list[ColorGicpTarget] | None = None
         self._o3d_targets: list | None = None
 
@@ -128,34 +126,6 @@ class RefineMap:
         if self._sg_fine is None:
             self._sg_fine = small_gicp.preprocess_points(self.xyz, self.fine_voxel_m, num_neighbors=GICP_NEIGHBORS)
         return self._sg_fine
-
-    def fine_target_around(self, xyz_map: np.ndarray,
-                           margin_m: float) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
-        """small_gicp's fine target for frame points placed at xyz_map ((n, 3), map frame): the whole map's when it is
-        built or this map does not crop (`crop_fine_target`), else one of the map points within margin_m of them
-        (`near`; not kept)."""
-        if self._sg_fine is not None or not self.crop_fine_target or len(xyz_map) == 0:
-            return self.fine_target()
-        inside = self.near(xyz_map, margin_m)
-        if len(inside) < MIN_ROI_POINTS:
-            return self.fine_target()
-        return small_gicp.preprocess_points(self.xyz[inside], self.fine_voxel_m, num_neighbors=GICP_NEIGHBORS)
-
-    def near(self, xyz_map: np.ndarray, margin_m: float) -> np.ndarray:
-        """Indices of the map points within margin_m of the points xyz_map ((n, 3), map frame), and some up to
-        2.3 times as far (the diagonal of the cells): those whose cell (a CROP_CELLS_PER_MARGIN-th of the margin)
-        lies within the margin's cells of a cell of xyz_map. GICP's covariances cost about 1 ms per thousand target
-        points, and the box around a frame's points (grown by the margin) held 1.5-2 times the points near them."""
-        lo, hi = xyz_map.min(axis=0) - margin_m, xyz_map.max(axis=0) + margin_m
-        in_box = np.flatnonzero(np.all((self.xyz >= lo) & (self.xyz <= hi), axis=1))
-        cell = margin_m / CROP_CELLS_PER_MARGIN
-        shape = np.floor((hi - lo) / cell).astype(np.int64) + 1
-        occupied = np.zeros(shape, dtype=np.uint8)
-        occupied[tuple(np.floor((xyz_map - lo) / cell).astype(np.int64).T)] = 1
-        # Within k cells along every axis: a point within margin_m of a frame point is at most k cells from its cell.
-        reach = maximum_filter(occupied, size=2 * CROP_CELLS_PER_MARGIN + 1, mode="constant")
-        cells = np.minimum(np.floor((self.xyz[in_box] - lo) / cell).astype(np.int64), shape - 1)
-        return in_box[reach[tuple(cells.T)] > 0]
 
     def coarse_target(self) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
         """small_gicp's map at coarse_voxel_m and its KD-tree."""
@@ -236,14 +206,14 @@ class RefineMap:
                max_iterations: int = 30) -> RefineOutcome:
         """Refine T_map_camera from `init_T_map_camera` with the frame's points (colour-camera frame)."""
         T_init = np.asarray(init_T_map_camera, dtype=np.float64)
+        if method == "small_gicp" and self.stored_target:
+            return self._refine_on_grid(points, T_init, epsilon=epsilon, source_voxel_m=source_voxel_m,
+                                        max_correspondence_m=max_correspondence_m, max_iterations=max_iterations)
         if method == "small_gicp":
             src, _ = small_gicp.preprocess_points(points.xyz, source_voxel_m, num_neighbors=GICP_NEIGHBORS)
-            target, tree = self.fine_target_around(transform_points(T_init, points.xyz),
-                                                   2.5 * max_correspondence_m + CROP_START_OFF_M)
+            target, tree = self.fine_target()
             T = T_init
-            # Wide then narrow correspondences: the wide pass pulls in a start some centimetres off, the narrow
-            # one keeps stray points out of the final estimate.
-            for corr in (2.5 * max_correspondence_m, max_correspondence_m):
+            for corr in (WIDE_PASS * max_correspondence_m, max_correspondence_m):
                 res = small_gicp.align(target, src, tree, init_T_target_source=T,
                                        registration_type="GICP", max_correspondence_distance=corr,
                                        num_threads=1, max_iterations=max_iterations, translation_epsilon=epsilon,
@@ -276,3 +246,18 @@ class RefineMap:
                 iterations += max_iterations
             return RefineOutcome(T, None, iterations, converged, method)
         raise InvalidArgument(f"unknown refinement method {method!r}; choose one of {REFINE_METHODS}")
+
+    def _refine_on_grid(self, points: FramePoints, T_init: np.ndarray, *, epsilon: float, source_voxel_m: float,
+                        max_correspondence_m: float, max_iterations: int) -> RefineOutcome:
+        """GICP (`grid_gicp.gicp`) of the frame's points, on small_gicp's voxel grid (means of source_voxel_m
+        voxels) with their own plane covariances, onto the fitness grid: the same two passes and the same
+        covariance of the pose as the small_gicp path."""
+        src = np.asarray(small_gicp.voxelgrid_sampling(points.xyz, source_voxel_m).points())[:, :3]
+        src_normals = plane_normals(src, cKDTree(src), np.arange(len(src)), GICP_NEIGHBORS)
+        T = T_init
+        for corr in (WIDE_PASS * max_correspondence_m, max_correspondence_m):
+            res = gicp(self.normals, src, src_normals, T, max_correspondence_m=corr, max_iterations=max_iterations,
+                       epsilon=epsilon)
+            T = res.T_target_source
+        cov = covariance_from_hessian(res.H, res.error, res.inliers)
+        return RefineOutcome(T, cov, res.iterations, res.converged, "grid_gicp")

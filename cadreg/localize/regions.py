@@ -37,7 +37,6 @@ class RegionIndex:
     refine_map: RefineMap
     view_check: ViewCheck
     fpfh: FpfhRansac | None = None  # FPFH + RANSAC against this region's map (a building's last resort), on first use
-    frame: int = 0  # the frame (RegionMaps.next_frame) that built it
 
 
 def region_cloud(site: Site, region: Region, which: str) -> PointSet:
@@ -106,7 +105,7 @@ def build_index(site: Site, regions: list[Region], region: Region, config: Local
         xyz, rgb, cls = cloud.points.astype(np.float64), cloud.rgb01(), cloud.class_index
     refine_map = RefineMap(xyz, rgb, cls, fine_voxel_m=rc.fine_voxel_m, coarse_voxel_m=rc.coarse_voxel_m,
                            color_scales_m=rc.color_scales_m, color_weight_m=rc.color_weight_m,
-                           crop_fine_target=len(regions) > 1, gridded=gridded)
+                           stored_target=len(regions) > 1, gridded=gridded)
     return RegionIndex(region, refine_map, ViewCheck(refine_map.xyz))
 
 
@@ -124,7 +123,6 @@ class RegionMaps:
         self._hi = np.array([r.bounds[1] for r in self.regions])
         self._cache: OrderedDict[str, RegionIndex] = OrderedDict()
         self.built = 0  # regions built so far (a cache miss builds one)
-        self.frame = 0  # frames localized so far (`next_frame`)
         if len(self.regions) == 1:
             self.index(self.regions[0])
 
@@ -150,21 +148,13 @@ class RegionMaps:
     def at(self, xyz: np.ndarray) -> RegionIndex:
         return self.index(self.region_at(xyz))
 
-    def next_frame(self) -> None:
-        """A new frame begins: a region it comes back to, built for an earlier frame, is one frames keep coming
-        from, and its refinement map builds its whole fine target from then on (`RefineMap.crop_fine_target`)."""
-        self.frame += 1
-
     def index(self, region: Region) -> RegionIndex:
         """The structures of `region`, built on first use; the least recently used beyond the cache are dropped."""
         found = self._cache.get(region.id)
         if found is not None:
             self._cache.move_to_end(region.id)
-            if found.frame != self.frame:
-                found.refine_map.crop_fine_target = False
             return found
         found = self._cache[region.id] = build_index(self.site, self.regions, region, self.config)
-        found.frame = self.frame
         self.built += 1
         while len(self._cache) > max(1, self.config.regions.max_cached):
             self._cache.popitem(last=False)
