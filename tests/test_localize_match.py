@@ -54,7 +54,14 @@ def test_pair_index_holds_the_node_pairs_within_its_reach_and_far_pairs_match_to
         keep = a != b
         assert sorted(zip(A.tolist(), B.tolist())) == sorted(zip(a[keep].tolist(), b[keep].tolist()))
         assert np.all(np.diff(d) >= 0) and np.array_equal(d, D[A, B])
-    # Two objects within the reach and two beyond it (matched against every node pair): each pair finds the pose.
+    # Beyond the reach: exactly the pairs of every node pair of the two classes within the tolerance of a length.
+    for ca, cb in ((0, 0), (1, 2)):
+        for d in (9.5, 14.0):
+            a, b = np.nonzero((np.abs(D - d) < 0.3) & (g.cls[:, None] == ca) & (g.cls[None, :] == cb))
+            keep = a != b
+            A, B = g.pairs_at(ca, cb, d, 0.3)
+            assert list(zip(A.tolist(), B.tolist())) == list(zip(a[keep].tolist(), b[keep].tolist())) and len(A)
+    # Two objects within the reach and two beyond it: each pair finds the pose.
     T = make_T(Rotation.from_euler("zx", [-64.0, -110.0], degrees=True).as_matrix(), [12.0, 9.0, 1.4])
     up_cam = T[:3, :3].T @ [0, 0, 1.0]
     R_level = rotation_between(up_cam, np.array([0, 0, 1.0]))

@@ -43,41 +43,58 @@ class MapGraph:
     extent: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     top: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (k,) highest point of the box along up, metres
     _by_class: dict = field(default_factory=dict, init=False, repr=False, compare=False)
-    _distances: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
+    _near: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
     _pairs: dict = field(default_factory=dict, init=False, repr=False, compare=False)
-
-    def distances(self) -> np.ndarray:
-        """(k, k) distances between the nodes' centroids, metres, made on first use: the pair hypotheses of a
-        building's frame compare tens of thousands of node pairs with each pair of its objects."""
-        if self._distances is None:
-            self._distances = np.linalg.norm(self.centroid[:, None] - self.centroid[None], axis=-1)
-        return self._distances
 
     def pairs_of_classes(self, cls_a: int, cls_b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The ordered pairs (a, b) of distinct nodes of classes cls_a and cls_b at most PAIR_REACH_M apart, by
         distance: (a, b, distance) arrays, made on first use. A frame's pair of objects of those classes at d is
         matched by the slice within the tolerance of d (`gravity_hypotheses`): comparing d with every node pair of
         the two classes (250 k for a 100-room building's chairs) took 3 ms a pair of objects, 150 ms for a frame
-        of 17 objects."""
+        of 17 objects. Made from the node pairs within the reach (a KD-tree's), not from all pairs of the
+        classes: those grow with the square of the building (a 1000-room building's chairs: 25 M)."""
         key = (int(cls_a), int(cls_b))
         if key not in self._pairs:
-            a, b = np.flatnonzero(self.cls == cls_a), np.flatnonzero(self.cls == cls_b)
-            D = self.distances()[np.ix_(a, b)]
-            ia, ib = np.nonzero((D <= PAIR_REACH_M) & (a[:, None] != b[None, :]))
-            d = D[ia, ib]
+            if self._near is None:
+                self._near = (cKDTree(self.centroid).query_pairs(PAIR_REACH_M, output_type="ndarray")
+                              if len(self.ids) > 1 else np.zeros((0, 2), dtype=np.int64))
+            i, j = self._near[:, 0], self._near[:, 1]
+            forward = (self.cls[i] == cls_a) & (self.cls[j] == cls_b)
+            backward = (self.cls[j] == cls_a) & (self.cls[i] == cls_b)
+            a = np.concatenate([i[forward], j[backward]]).astype(np.int64)
+            b = np.concatenate([j[forward], i[backward]]).astype(np.int64)
+            d = np.linalg.norm(self.centroid[a] - self.centroid[b], axis=-1)
             order = np.argsort(d, kind="stable")
-            self._pairs[key] = (a[ia][order], b[ib][order], d[order])
+            self._pairs[key] = (a[order], b[order], d[order])
         return self._pairs[key]
+
+    def pairs_at(self, cls_a: int, cls_b: int, d: float, tolerance_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """The ordered pairs (a, b) of distinct nodes of classes cls_a and cls_b whose distance is within
+        tolerance_m of d (strictly), row-major over (a, b): for objects farther apart than the index reaches
+        (`pairs_of_classes`), from a ball query of cls_b's KD-tree around each node of cls_a."""
+        nodes_a, _ = self._class_tree(cls_a)
+        nodes_b, tree = self._class_tree(cls_b)
+        if tree is None or len(nodes_a) == 0:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+        found = tree.query_ball_point(self.centroid[nodes_a], d + tolerance_m)
+        a = np.repeat(nodes_a, [len(f) for f in found])
+        b = nodes_b[np.concatenate([np.sort(f) for f in found]).astype(np.int64)] if len(a) else a
+        keep = (np.abs(np.linalg.norm(self.centroid[a] - self.centroid[b], axis=-1) - d) < tolerance_m) & (a != b)
+        return a[keep], b[keep]
+
+    def _class_tree(self, cls: int) -> tuple[np.ndarray, cKDTree | None]:
+        """The nodes of class `cls` and a KD-tree of their centroids (None when there are none), made on first use."""
+        if cls not in self._by_class:
+            nodes = np.flatnonzero(self.cls == cls)
+            self._by_class[cls] = (nodes, cKDTree(self.centroid[nodes]) if len(nodes) else None)
+        return self._by_class[cls]
 
     def nearest_of_class(self, xyz: np.ndarray, cls: int, radius_m: float) -> np.ndarray:
         """(m,) index of the node of class `cls` nearest each point of xyz ((m, 3), map frame), -1 where none lies
         within radius_m. A KD-tree per class, made on first use: a building's graph holds hundreds of nodes of a
         class, and the distances of every hypothesis's objects to every node (h x n x k) took 130 ms a frame of a
         100-room site."""
-        if cls not in self._by_class:
-            nodes = np.flatnonzero(self.cls == cls)
-            self._by_class[cls] = (nodes, cKDTree(self.centroid[nodes]) if len(nodes) else None)
-        nodes, tree = self._by_class[cls]
+        nodes, tree = self._class_tree(cls)
         if tree is None:
             return np.full(len(xyz), -1, dtype=np.int64)
         d, k = tree.query(xyz, distance_upper_bound=radius_m)  # none within: d = inf, k = len(nodes)
@@ -222,11 +239,7 @@ def gravity_hypotheses(scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: M
         hs = _horizontal(ds, up)
         if np.linalg.norm(hs) < min_pair_horizontal_m:
             continue
-        a = np.flatnonzero(graph.cls == scan_cls[i])
-        b = np.flatnonzero(graph.cls == scan_cls[j])
-        if len(a) == 0 or len(b) == 0:
-            continue
-        # Every pair of distinct nodes of the two classes as far apart as the two objects (row-major over a, b)
+        # Every pair of distinct nodes of the two classes as far apart as the two objects (row-major over them)
         d = float(np.linalg.norm(ds))
         if d + pair_tolerance_m <= PAIR_REACH_M:
             A, B, dm = graph.pairs_of_classes(scan_cls[i], scan_cls[j])
@@ -236,9 +249,7 @@ def gravity_hypotheses(scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: M
             row_major = np.lexsort((B, A))
             A, B = A[row_major], B[row_major]
         else:
-            ia, ib = np.nonzero((np.abs(graph.distances()[np.ix_(a, b)] - d) < pair_tolerance_m)
-                                & (a[:, None] != b[None, :]))
-            A, B = a[ia], b[ib]
+            A, B = graph.pairs_at(scan_cls[i], scan_cls[j], d, pair_tolerance_m)
         if len(A) == 0:
             continue
         dm = graph.centroid[B] - graph.centroid[A]
