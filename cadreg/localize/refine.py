@@ -91,11 +91,12 @@ class RefineMap:
         # The coarse target likewise: a building's candidates are aligned on its distance field, not here.
         self._sg_coarse: tuple[small_gicp.PointCloud, small_gicp.KdTree] | None = None
         # Points already one per fitness voxel (a building's stored region grid) are their own grid.
-        keep = np.arange(len(self.xyz)) if gridded else voxel_indices(self.xyz, fitness_voxel_m)
+        # (no copies of them: a building makes a region map per room it refines in)
+        keep = slice(None) if gridded else voxel_indices(self.xyz, fitness_voxel_m)
         self.fit_xyz = self.xyz[keep]
         self._fit_keep = keep
         self._fit_lab: np.ndarray | None = None  # CIE Lab of fit_xyz, made on first use (`fit_lab`)
-        self.fit_cls = (np.full(len(keep), -1, dtype=np.int64) if class_index is None
+        self.fit_cls = (np.full(len(self.fit_xyz), -1, dtype=np.int64) if class_index is None
                         else np.asarray(class_index, dtype=np.int64)[keep])
         # cKDTree, not small_gicp's KD-tree, for the nearest neighbours of `fitness` and `agreement`: small_gicp's is
         # 2x faster for points on the map but has no distance bound, and for points off it (a wrong hypothesis, a
