@@ -13,7 +13,7 @@ from cadreg.geometry import make_T, pose_errors, transform_points
 from cadreg.localize.color_gicp import ColorGicpTarget, color_gicp, plane_covariances, prepare_cloud, rgb_to_lab
 from cadreg.localize.grid_gicp import PLANE_EPS, _linearize, plane_covariance, plane_normals, se3_exp
 from cadreg.localize.points import frame_to_points
-from cadreg.localize.refine import RefineMap
+from cadreg.localize.refine import GRID_PAIRS_PER_MAP_POINT, RefineMap
 from cadreg.localize.synthetic import look_pose, make_scene, render_frame
 
 
@@ -68,6 +68,27 @@ def test_a_buildings_gicp_on_its_fitness_grid_refines_as_small_gicp_does(scene_a
         assert 0.5 < std_a / std_b < 2.0, (std_a, std_b)
     # no small_gicp target was built, and normals were made only for the map points the frame was paired with
     assert grid._sg_fine is None and 0 < grid.normals.known < 0.5 * len(grid.fit_xyz)
+
+
+def test_a_region_map_builds_small_gicps_target_once_its_refinements_would_have_paid_for_it(scene_and_frame) -> None:
+    scene, frame, T, _ = scene_and_frame
+    pts = frame_to_points(frame)
+    site = scene.site
+    grid = RefineMap(site.map.points, site.map.colors / 255.0, site.map.class_index, stored_target=True)
+    T0 = _perturbed(T, seed=3, t_m=0.08, r_deg=3.0)
+    methods = []
+    while len(methods) < 200 and (not methods or methods[-1] == "grid_gicp"):
+        paired = grid.grid_pairs
+        out = grid.refine(pts, T0, method="small_gicp")
+        methods.append(out.method)
+        assert pose_errors(out.T_map_camera, T)[0] < 0.01
+        if out.method == "grid_gicp":
+            assert grid.grid_pairs > paired and grid._sg_fine is None
+    # the grid GICP ran until it had paired as many frame points as the map has points, then small_gicp's target
+    # was built once and kept
+    assert methods[-1] == "small_gicp" and methods.count("small_gicp") == 1 and len(methods) > 2
+    assert GRID_PAIRS_PER_MAP_POINT * len(grid.xyz) <= grid.grid_pairs and grid._sg_fine is not None
+    assert grid.refine(pts, T0, method="small_gicp").method == "small_gicp" and grid.fine_target() is grid._sg_fine
 
 
 def test_grid_gicp_terms_are_the_gicp_cost_written_out() -> None:

@@ -4,7 +4,8 @@ The whole T_init is kept (the paper keeps only its translation). Three methods s
 `color_gicp` (hand-written colour-supported GICP, `color_gicp.py`), `small_gicp` (GICP, the map preprocessed once)
 and `open3d_colored_icp` (Open3D's coloured ICP, for comparison). All search structures are built once per site.
 In a building, `small_gicp` runs the same GICP written over the region map's fitness grid (`grid_gicp.py`, reported
-as `grid_gicp`): a small_gicp target per region and frame cost more than the rest of the refinement.
+as `grid_gicp`) until a region has served enough refinements to pay for small_gicp's whole target (a small_gicp
+target per region and frame cost more than the rest of the refinement).
 """
 
 from __future__ import annotations
@@ -30,6 +31,13 @@ MIN_ROI_POINTS = 100
 # GICP's passes: correspondences this many times RefineConfig.max_correspondence_m (pulling in a start some
 # centimetres off), then that distance (keeping stray points out of the final estimate).
 WIDE_PASS = 2.5
+# A building's region map refines with the GICP on its grid (`grid_gicp.py`) until that GICP has paired this many
+# frame points (summed over its iterations) per map point, then builds small_gicp's whole target once and refines
+# on it: the grid GICP costs about 1 µs a pair an iteration and the whole target about 1 µs a map point (160-170 ms
+# for a 100-room building's region), and small_gicp aligns on a built target several times faster. Renting until
+# the rent paid equals the price, then buying, costs at most twice what knowing the future would: a region that
+# serves a few frames never builds the target, one frames keep coming back to (a stream, a small building) does.
+GRID_PAIRS_PER_MAP_POINT = 1.0
 
 
 def crop_to_roi(points: FramePoints, radius_m: float,
@@ -105,10 +113,12 @@ class RefineMap:
         # building's region map of 120 k points took 30), and its queries were no slower; leaves of 32 points
         # rather than 16, a sixth less again (21 -> 17 ms for 150 k points), queries as fast.
         self.fit_tree = cKDTree(self.fit_xyz, leafsize=32, balanced_tree=False, compact_nodes=False)
-        # A building's region map serves few refinements before its cache drops it: its GICP normals are made for
-        # the points those pair with, not for the whole map (`grid_gicp.py`).
+        # A building's region map often serves a few refinements before its cache drops it: its GICP normals are
+        # made for the points those pair with, not for the whole map (`grid_gicp.py`), until its refinements have
+        # paired as many frame points as small_gicp's whole target would cost (GRID_PAIRS_PER_MAP_POINT).
         self.stored_target = stored_target
         self.normals = MapNormals(self.fit_xyz, self.fit_tree, GICP_NEIGHBORS) if stored_target else None
+        self.grid_pairs = 0  # frame points the grid GICP has paired on this map, summed over its iterations
         self._color_targets: list[ColorGicpTarget] | None = None
         self._o3d_targets: list | None = None
 
@@ -207,7 +217,8 @@ class RefineMap:
                max_iterations: int = 30) -> RefineOutcome:
         """Refine T_map_camera from `init_T_map_camera` with the frame's points (colour-camera frame)."""
         T_init = np.asarray(init_T_map_camera, dtype=np.float64)
-        if method == "small_gicp" and self.stored_target:
+        if method == "small_gicp" and self.stored_target and self._sg_fine is None and (
+                self.grid_pairs < GRID_PAIRS_PER_MAP_POINT * len(self.xyz)):
             return self._refine_on_grid(points, T_init, epsilon=epsilon, source_voxel_m=source_voxel_m,
                                         max_correspondence_m=max_correspondence_m, max_iterations=max_iterations)
         if method == "small_gicp":
@@ -260,5 +271,6 @@ class RefineMap:
             res = gicp(self.normals, src, src_normals, T, max_correspondence_m=corr, max_iterations=max_iterations,
                        epsilon=epsilon)
             T = res.T_target_source
+            self.grid_pairs += len(src) * res.iterations
         cov = covariance_from_hessian(res.H, res.error, res.inliers)
         return RefineOutcome(T, cov, res.iterations, res.converged, "grid_gicp")
