@@ -71,14 +71,20 @@ def halo_cloud(site: Site, regions: list[Region], region: Region, which: str, ha
     return out
 
 
+def halo_grid(site: Site, regions: list[Region], region: Region, which: str, halo_m: float,
+              voxel_m: float = FITNESS_VOXEL_M) -> PointSet:
+    """`region`'s `halo_cloud` of cloud `which`, one point per voxel_m voxel: a building's region map."""
+    halo = halo_cloud(site, regions, region, which, halo_m)
+    return halo.take(voxel_indices(halo.points.astype(np.float64), voxel_m))
+
+
 def region_grids(site: Site, regions: list[Region], *, cloud: str, halo_m: float,
                  voxel_m: float = FITNESS_VOXEL_M) -> RegionGrids:
     """Each region's `halo_cloud` of cloud `cloud`, one point per voxel_m voxel: what `site compose` stores
     (regions.npy) so that a building's region maps are made from a read (`build_index`)."""
     parts = []
     for region in regions:
-        halo = halo_cloud(site, regions, region, cloud, halo_m)
-        grid = halo.take(voxel_indices(halo.points.astype(np.float64), voxel_m))
+        grid = halo_grid(site, regions, region, cloud, halo_m, voxel_m)
         rows = np.zeros(len(grid), dtype=REGION_GRID_DTYPE)
         rows["xyz"], rows["rgb"], rows["cls"] = grid.points, grid.colors, grid.class_index
         parts.append(rows)
@@ -88,11 +94,13 @@ def region_grids(site: Site, regions: list[Region], *, cloud: str, halo_m: float
 
 
 def build_index(site: Site, regions: list[Region], region: Region, config: LocalizeConfig) -> RegionIndex:
+    """The structures of one region: a one-room site's of its whole cloud; a building's of its region grid (its box
+    and halo, one point per fitness voxel), read as the bundle stores it, else made from the clouds."""
     rc = config.refine
     stored = site.region_grids
-    gridded = len(regions) > 1 and stored is not None and stored.matches(
-        cloud=rc.map_points, halo_m=config.regions.halo_m, voxel_m=FITNESS_VOXEL_M)
-    if gridded:
+    building = len(regions) > 1
+    if building and stored is not None and stored.matches(cloud=rc.map_points, halo_m=config.regions.halo_m,
+                                                          voxel_m=FITNESS_VOXEL_M):
         # The region's grid as the bundle stores it: one read, no gather over its neighbours, no gridding (40 of
         # the 65 ms a 100-room building's region map took).
         k = next(i for i, r in enumerate(regions) if r.id == region.id)
@@ -100,12 +108,12 @@ def build_index(site: Site, regions: list[Region], region: Region, config: Local
         xyz, rgb, cls = rows["xyz"].astype(np.float64), rows["rgb"] / 255.0, rows["cls"].astype(np.int64)
         stored.release(k)
     else:
-        cloud = (region_cloud(site, region, rc.map_points) if len(regions) == 1
-                 else halo_cloud(site, regions, region, rc.map_points, config.regions.halo_m))
+        cloud = (halo_grid(site, regions, region, rc.map_points, config.regions.halo_m) if building
+                 else region_cloud(site, region, rc.map_points))
         xyz, rgb, cls = cloud.points.astype(np.float64), cloud.rgb01(), cloud.class_index
     refine_map = RefineMap(xyz, rgb, cls, fine_voxel_m=rc.fine_voxel_m, coarse_voxel_m=rc.coarse_voxel_m,
                            color_scales_m=rc.color_scales_m, color_weight_m=rc.color_weight_m,
-                           stored_target=len(regions) > 1, gridded=gridded)
+                           stored_target=building, gridded=building)
     return RegionIndex(region, refine_map, ViewCheck(refine_map.xyz))
 
 
