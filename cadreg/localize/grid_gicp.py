@@ -5,7 +5,8 @@ Written by hand, and why: small_gicp takes no covariances computed elsewhere and
 each refinement in a building built a small_gicp target around the frame (a voxel grid, a KD-tree and a covariance
 for each of some 30 k map points: 46 of the 255 ms a 100-room frame took), to run two or three GICP iterations from
 a start the field alignment had put within a centimetre or two. Here the map's covariances are made only for the
-map points a refinement pairs with, on first use, and kept with the map for the frames that come back to it.
+map points a refinement pairs with, on first use, and kept with the map for the frames that come back to it (a
+region that keeps serving frames builds small_gicp's target after all: `refine.GRID_PAIRS_PER_MAP_POINT`).
 
 The cost and its parts are small_gicp's (Segal et al. 2009; small_gicp's `GICPFactor`): residual r = q - T p for
 the nearest map point q within the correspondence distance, cost ½ Σ rᵀ (C_q + R C_p Rᵀ)⁻¹ r, covariances from
@@ -135,7 +136,8 @@ def warm() -> None:
     xyz = np.random.default_rng(0).random((12, 3))
     normals = plane_normals(xyz, cKDTree(xyz), np.arange(12), 10)
     nn, found, M = np.arange(12), np.ones(12, dtype=bool), np.zeros((12, 3, 3))
-    _linearize(xyz, normals, xyz, normals, nn, found, np.eye(3), np.zeros(3), PLANE_EPS, np.zeros((6, 6)), np.zeros(6), M)
+    _linearize(xyz, normals, xyz, normals, nn, found, np.eye(3), np.zeros(3), PLANE_EPS, np.zeros((6, 6)),
+               np.zeros(6), M)
     _pair_error(xyz, xyz, nn, found, M, np.eye(3), np.zeros(3))
 
 
@@ -204,8 +206,8 @@ def _least_axis(C, out):
 
 @njit(cache=True, nogil=True)
 def _linearize(src, src_normals, tgt, tgt_normals, nn, found, R, t, eps, H, b, Ms):
-    """H, b <- Σ Jᵀ M J, Σ Jᵀ M r over the found pairs (J = ∂r/∂δ = [R [p]x, -R], M = (C_q + R C_p Rᵀ)⁻¹,
-    r = q - (R p + t)), Ms[i] <- M of pair i; returns (Σ rᵀ M r, pairs)."""
+    """H, b <- Σ Jᵀ M J, Σ Jᵀ M r over the found pairs (J = ∂r/∂δ = [R [p]x, -R],
+    M = (C_q + R C_p Rᵀ)⁻¹, r = q - (R p + t)), Ms[i] <- M of pair i; returns (Σ rᵀ M r, pairs)."""
     H[:] = 0.0
     b[:] = 0.0
     error, count = 0.0, 0

@@ -192,8 +192,8 @@ class Localizer:
 
     def warm(self) -> "Localizer":
         """Build now what is otherwise built on first use (the map's FPFH features for the fallback, about a second
-        a site; the compiled loops of `field_kernels`, `grid_gicp`, `match` and `twins`), so that a long-running server does not
-        make its first requests pay for it."""
+        a site; the compiled loops of `field_kernels`, `grid_gicp`, `match` and `twins`), so that a long-running
+        server does not make its first requests pay for it."""
         if len(self.maps) == 1:
             self.refine_map.fine_target()
             self.refine_map.coarse_target()

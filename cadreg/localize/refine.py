@@ -81,7 +81,7 @@ class RefineMap:
 
     xyz : (n, 3) float; rgb : (n, 3) float in [0, 1]. gridded : the points are one per fitness_voxel_m voxel already.
     stored_target : a building's region map; its GICP pairs the frame with the fitness grid through the fitness
-    KD-tree (`grid_gicp.py`) instead of a small_gicp target of its own.
+    KD-tree (`grid_gicp.py`) until it has done the work of building small_gicp's target (GRID_PAIRS_PER_MAP_POINT).
     """
 
     def __init__(self, xyz: np.ndarray, rgb: np.ndarray, class_index: np.ndarray | None = None, *, fine_voxel_m: float = 0.025, coarse_voxel_m: float = 0.08,
@@ -98,8 +98,8 @@ class RefineMap:
         self._sg_fine: tuple[small_gicp.PointCloud, small_gicp.KdTree] | None = None
         # The coarse target likewise: a building's candidates are aligned on its distance field, not here.
         self._sg_coarse: tuple[small_gicp.PointCloud, small_gicp.KdTree] | None = None
-        # Points already one per fitness voxel (a building's stored region grid) are their own grid.
-        # (no copies of them: a building makes a region map per room it refines in)
+        # Points already one per fitness voxel (a building's region grid) are their own grid, not a copy of it: a
+        # building makes a region map for each room it refines in.
         keep = slice(None) if gridded else voxel_indices(self.xyz, fitness_voxel_m)
         self.fit_xyz = self.xyz[keep]
         self._fit_keep = keep
