@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from cadreg.camera import CameraIntrinsics
 from cadreg.geometry import make_T, pose_errors, transform_points
 from cadreg.localize.color_gicp import ColorGicpTarget, color_gicp, plane_covariances, prepare_cloud, rgb_to_lab
-from cadreg.localize.grid_gicp import PLANE_EPS, _linearize, plane_covariance, plane_normals, se3_exp
+from cadreg.localize.grid_gicp import PLANE_EPS, MapNormals, _linearize, gicp, plane_covariance, plane_normals, se3_exp
 from cadreg.localize.points import frame_to_points
 from cadreg.localize.refine import GRID_PAIRS_PER_MAP_POINT, RefineMap
 from cadreg.localize.synthetic import look_pose, make_scene, render_frame
@@ -118,6 +118,12 @@ def test_grid_gicp_terms_are_the_gicp_cost_written_out() -> None:
     assert pairs == found.sum()
     assert np.allclose(H, np.einsum("mki,mkl,mlj->ij", J, M, J)) and np.allclose(b, np.einsum("mki,mkl,ml->i", J, M, r))
     assert np.isclose(error, np.einsum("mi,mij,mj->", r, M, r)) and np.allclose(Ms[found], M)
+    # no points: no normals, and a GICP of nothing stays where it started
+    empty = np.zeros((0, 3))
+    assert plane_normals(empty, cKDTree(empty), np.arange(0), 10).shape == (0, 3)
+    start = make_T(R, t)
+    none = gicp(MapNormals(xyz, tree, 10), empty, empty, start, max_correspondence_m=0.1, max_iterations=5, epsilon=1e-3)
+    assert none.inliers == 0 and not none.converged and np.array_equal(none.T_target_source, start)
     # the residual's derivative is J: a small step on the right moves r by J δ
     delta = np.array([1e-4, -2e-4, 1e-4, 1e-4, 2e-4, -1e-4])
     T = make_T(R, t) @ se3_exp(delta)

@@ -35,6 +35,8 @@ LM_TRIALS = 10
 def plane_normals(xyz: np.ndarray, tree: cKDTree, index: np.ndarray, k: int) -> np.ndarray:
     """(m, 3) unit normals of the points xyz[index]: the least axis of each one's k nearest points in `tree`
     (a KD-tree over xyz)."""
+    if len(index) == 0:
+        return np.zeros((0, 3))
     k = min(k, len(xyz))
     _, nn = tree.query(xyz[index], k=k)
     out = np.empty((len(index), 3))
