@@ -76,6 +76,12 @@ def test_a_thinned_view_traces_every_other_ray_of_every_other_row(field, view_an
     T_off[:3, 3] += T[:3, 0] * 0.2
     for pose in (T, T_off):
         assert abs(thin.agreement(thin.render(field, pose))[0] - view.agreement(view.render(field, pose))[0]) < 0.05
+    # a render completed from the thinned one's rays is the whole render, exactly
+    poses = np.stack([T, T_off])
+    rays = view.thinned_rays(2)
+    assert np.array_equal(view.measured[rays], thin.measured)
+    assert np.array_equal(view.render_completing(field, poses, rays, thin.render(field, poses)),
+                          view.render(field, poses))
 
 
 def test_the_sensor_range_bounds_what_is_measured_and_rendered(field, view_and_pose) -> None:

@@ -67,12 +67,33 @@ class FieldView:
 
     def thinned(self, step: int) -> "FieldView":
         """The same view on every step-th ray of every step-th row (a quarter of the rays for 2): a cheaper look
-        at many poses before the full one at the few that matter."""
+        at many poses before the full one at the few that matter. Its rays are `thinned_rays(step)` of this view's."""
         rows, cols = self.shape
-        pick = np.arange(rows * cols).reshape(rows, cols)[::step, ::step]
+        out = self._rays(self.thinned_rays(step))
+        out.shape = ((rows + step - 1) // step, (cols + step - 1) // step)
+        return out
+
+    def thinned_rays(self, step: int) -> np.ndarray:
+        """Indices of the rays `thinned(step)` keeps, in its order."""
+        rows, cols = self.shape
+        return np.arange(rows * cols).reshape(rows, cols)[::step, ::step].ravel()
+
+    def render_completing(self, field: DistanceField, T_map_camera: np.ndarray, rays: np.ndarray,
+                          rendered: np.ndarray) -> np.ndarray:
+        """`render` at poses whose depths along some of the rays are known already: rendered (h, len(rays)) along
+        `rays` (indices into this view's rays); the other rays are traced. Each ray is traced on its own, so this is
+        `render` exactly, for the rays' share less of the cost."""
+        T = np.asarray(T_map_camera, dtype=np.float64).reshape(-1, 4, 4)
+        out = np.empty((len(T), len(self)))
+        rest = np.setdiff1d(np.arange(len(self)), rays)
+        out[:, rays] = rendered
+        out[:, rest] = self._rays(rest).render(field, T)
+        return out
+
+    def _rays(self, index: np.ndarray) -> "FieldView":
+        """The same view on the rays `index` (its shape is this view's until the caller sets it)."""
         out = copy.copy(self)
-        out.measured, out.dirs_camera = self.measured[pick.ravel()], self.dirs_camera[pick.ravel()]
-        out.shape = pick.shape
+        out.measured, out.dirs_camera = self.measured[index], self.dirs_camera[index]
         return out
 
     def __len__(self) -> int:

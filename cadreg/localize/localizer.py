@@ -712,7 +712,8 @@ class Localizer:
         # rendered in full. Those that cannot are no rival (two views alike enough to be twins agree with the
         # frame within a few hundredths of each other) and are not listed.
         coarse = scan.view.thinned(TWIN_THIN_STEP)
-        score = coarse.agreement(coarse.render(self.field, T))
+        thin = coarse.render(self.field, T)
+        score = coarse.agreement(thin)
         # A moved pose that shows the frame less well than the answer may only be a little off (real copies are
         # never placed exactly): it is pulled onto the field, and kept there when that shows the frame better.
         # The copies of a composed building are exact, and the field's alignment, good to a centimetre or two,
@@ -723,14 +724,17 @@ class Localizer:
                                   up=None if scan.floor is None else self.up,
                                   iterations=TWIN_ALIGN_ITERATIONS, reach_m=TWIN_ALIGN_REACH_M)
             aligned = _stack_poses(R, t)
-            again = coarse.agreement(coarse.render(self.field, aligned))
+            thin_again = coarse.render(self.field, aligned)
+            again = coarse.agreement(thin_again)
             better = again > score[low]
             T[low[better]], score[low[better]] = aligned[better], again[better]
+            thin[low[better]] = thin_again[better]
         near = np.flatnonzero(score >= view_score - self.config.match.ambiguity_margin - TWIN_THIN_SLACK)
         if not len(near):
             return []
         copies, T = [copies[k] for k in near], T[near]
-        rendered = scan.view.render(self.field, T)
+        # in full: the rays of the first look are traced already
+        rendered = scan.view.render_completing(self.field, T, scan.view.thinned_rays(TWIN_THIN_STEP), thin[near])
         score = scan.view.agreement(rendered)
         out = []
         for k, T_k in enumerate(T.copy()):  # one array per pose, shared by its outcome and its candidate
