@@ -30,10 +30,10 @@ RUN useradd --create-home --uid 10001 cadreg \
     && mkdir -p /sites \
     && chown cadreg:cadreg /sites
 USER cadreg
-# numba's compiled loops (cadreg/localize: field_kernels, grid_gicp, match, twins) are cached where this user may
-# write, and compiled once here rather than by the first request of every worker.
+# numba's compiled loops (cadreg/localize: `compile_loops`) are cached where this user may write, and compiled once
+# here rather than by the first request of every worker.
 ENV NUMBA_CACHE_DIR=/home/cadreg/.cache/numba
-RUN python -c "from cadreg.localize import field_kernels, grid_gicp, match, twins; [m.warm() for m in (field_kernels, grid_gicp, match, twins)]"
+RUN python -c "from cadreg.localize.localizer import compile_loops; compile_loops()"
 
 ENV CADREG_SITES_DIR=/sites \
     CADREG_HOST=0.0.0.0 \

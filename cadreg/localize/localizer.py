@@ -103,6 +103,13 @@ YAW_NORMAL_POINTS = 1000
 TOP_PERCENTILE = 98
 
 
+def compile_loops() -> None:
+    """Compile (or load from numba's cache) every compiled loop the localizer runs: `Localizer.warm` at a server's
+    start, the Dockerfile at build time."""
+    for module in (field_kernels, grid_gicp, match, room_twins):
+        module.warm()
+
+
 class Localizer:
     """Localize frames in one site. Build with `from_site`; `localize` is read-only and may be called repeatedly.
 
@@ -192,8 +199,8 @@ class Localizer:
 
     def warm(self) -> "Localizer":
         """Build now what is otherwise built on first use (the map's FPFH features for the fallback, about a second
-        a site; the compiled loops of `field_kernels`, `grid_gicp`, `match` and `twins`), so that a long-running
-        server does not make its first requests pay for it."""
+        a site; the compiled loops, `compile_loops`), so that a long-running server does not make its first requests
+        pay for it."""
         if len(self.maps) == 1:
             self.refine_map.fine_target()
             self.refine_map.coarse_target()
@@ -204,10 +211,7 @@ class Localizer:
             self.fpfh()
         if self.config.label_free.enabled:
             self.pyramid()
-        field_kernels.warm()
-        grid_gicp.warm()
-        match.warm()
-        room_twins.warm()
+        compile_loops()
         return self
 
     def pyramid(self) -> tuple[GridPyramid, np.ndarray | None]:

@@ -32,17 +32,23 @@ class DistanceField:
         hi = points.max(axis=0) + margin_m
         while np.prod(np.ceil((hi - lo) / voxel_m) + 1) > max_cells:
             voxel_m *= 1.25
-        self.voxel_m = float(voxel_m)
-        self.origin = lo
-        self.dims = (np.ceil((hi - lo) / voxel_m) + 1).astype(np.int64)
-        self.truncate_m = float(truncate_m)
-        occupied = np.ones(tuple(self.dims), dtype=bool)
+        occupied = np.ones(tuple((np.ceil((hi - lo) / voxel_m) + 1).astype(np.int64)), dtype=bool)
         ijk = np.floor((points - lo) / voxel_m).astype(np.int64)
         occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = False
         dist = np.minimum(distance_transform_edt(occupied) * voxel_m, truncate_m).astype(np.float32)
         # A one-voxel border at the truncation distance: clipped indices of outside points land on it.
-        self.grid = np.pad(dist, 1, constant_values=np.float32(truncate_m)).ravel()
-        self.step_m: float | None = None  # metres per unit of a quantized grid (None: the grid holds metres)
+        self._hold(np.pad(dist, 1, constant_values=np.float32(truncate_m)), lo, voxel_m, truncate_m, None)
+
+    def _hold(self, padded: np.ndarray, origin: np.ndarray, voxel_m: float, truncate_m: float,
+              step_m: float | None) -> None:
+        """Take `padded` ((dims + 2) cells along each axis, its one-cell border at the truncation distance) as this
+        field's grid. step_m : metres per unit of a quantized grid (None: the grid holds metres)."""
+        self.voxel_m = float(voxel_m)
+        self.origin = np.asarray(origin, dtype=np.float64)
+        self.dims = np.array(padded.shape, dtype=np.int64) - 2
+        self.truncate_m = float(truncate_m)
+        self.step_m = step_m
+        self.grid = padded.reshape(-1)
         d = self.dims + 2
         self._strides = np.array([d[1] * d[2], d[2], 1], dtype=np.int64)
 
@@ -51,14 +57,7 @@ class DistanceField:
         """The field a site stores (`building_field`), read where it lies (a memory map: shared by the worker
         processes through the page cache, and paged in where frames are scored)."""
         self = cls.__new__(cls)
-        self.voxel_m = float(stored.voxel_m)
-        self.origin = np.asarray(stored.origin, dtype=np.float64)
-        self.dims = np.array(stored.grid.shape, dtype=np.int64) - 2
-        self.truncate_m = float(stored.truncate_m)
-        self.grid = stored.grid.reshape(-1)
-        self.step_m = self.truncate_m / QUANT_MAX
-        d = self.dims + 2
-        self._strides = np.array([d[1] * d[2], d[2], 1], dtype=np.int64)
+        self._hold(stored.grid, stored.origin, stored.voxel_m, stored.truncate_m, float(stored.truncate_m) / QUANT_MAX)
         return self
 
     def coarsened(self, factor: int) -> "DistanceField":
@@ -71,16 +70,9 @@ class DistanceField:
         blocks = self.grid.reshape(tuple(self.dims + 2))[1:-1, 1:-1, 1:-1]
         for axis in range(3):
             blocks = _least_of_runs(blocks, factor, axis, far)
-        dims = np.array(blocks.shape, dtype=np.int64)
         out = DistanceField.__new__(DistanceField)
-        out.voxel_m = self.voxel_m * factor
-        out.origin = self.origin.copy()
-        out.dims = dims
-        out.truncate_m = self.truncate_m
-        out.step_m = self.step_m
-        out.grid = np.pad(blocks, 1, constant_values=far).ravel()
-        d = dims + 2
-        out._strides = np.array([d[1] * d[2], d[2], 1], dtype=np.int64)
+        out._hold(np.pad(blocks, 1, constant_values=far), self.origin.copy(), self.voxel_m * factor, self.truncate_m,
+                  self.step_m)
         return out
 
     def surface_points(self, spacing_m: float) -> np.ndarray:
