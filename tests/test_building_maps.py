@@ -215,3 +215,24 @@ def test_fpfh_in_a_building_searches_one_room_never_the_whole_building(twin_room
     halo = loc.maps.index(a).refine_map.xyz
     assert not np.all((halo >= a.bounds[0] - ROOM_MARGIN_M) & (halo <= a.bounds[1] + ROOM_MARGIN_M))
     assert all(h.region == "a" for h in named.hypotheses if h.T_map_camera is not None)
+
+
+def test_a_warmed_localizer_compiles_nothing_on_its_first_building_frames(twin_rooms_dir: Path,
+                                                                          twin_shared_view) -> None:
+    # A loop called with an array layout `compile_loops` did not warm compiles again on a worker's first frame
+    # (seconds): small_gicp's column-major points did, in the grid GICP.
+    from numba.core.registry import CPUDispatcher
+
+    from cadreg.localize import field_kernels, grid_gicp, match, twins
+
+    def signatures() -> dict[str, list]:
+        return {f"{m.__name__}.{name}": list(f.signatures) for m in (field_kernels, grid_gicp, match, twins)
+                for name, f in vars(m).items() if isinstance(f, CPUDispatcher)}
+
+    frame, _ = twin_shared_view
+    loc = Localizer.from_site(Site.load(twin_rooms_dir))
+    loc.warm()
+    warmed = signatures()
+    for f in (frame, replace(frame, labels=None)):
+        assert loc.localize(f).diagnostics.refinement.method == "grid_gicp"
+    assert signatures() == warmed

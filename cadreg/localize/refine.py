@@ -264,7 +264,9 @@ class RefineMap:
         """GICP (`grid_gicp.gicp`) of the frame's points, on small_gicp's voxel grid (means of source_voxel_m
         voxels) with their own plane covariances, onto the fitness grid: the same two passes and the same
         covariance of the pose as the small_gicp path."""
-        src = np.asarray(small_gicp.voxelgrid_sampling(points.xyz, source_voxel_m).points())[:, :3]
+        # Contiguous: small_gicp hands its points over column-major, and the compiled loops are compiled (and
+        # warmed, `compile_loops`) for row-major arrays; any other layout compiles again on a worker's first frame.
+        src = np.ascontiguousarray(np.asarray(small_gicp.voxelgrid_sampling(points.xyz, source_voxel_m).points())[:, :3])
         src_normals = plane_normals(src, cKDTree(src), np.arange(len(src)), GICP_NEIGHBORS)
         T = T_init
         for corr in (WIDE_PASS * max_correspondence_m, max_correspondence_m):
