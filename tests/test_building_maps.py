@@ -81,6 +81,7 @@ def test_a_regions_map_holds_its_neighbours_within_the_halo(twin_rooms_dir: Path
 
 
 def test_the_stored_region_grids_are_each_regions_halo_on_the_fitness_grid(twin_rooms_dir: Path, tmp_path: Path) -> None:
+    from cadreg.localize.point_tree import LEAF_SIZE, tree_order
     from cadreg.localize.points import voxel_indices
     from cadreg.localize.refine import FITNESS_VOXEL_M
 
@@ -90,9 +91,11 @@ def test_the_stored_region_grids_are_each_regions_halo_on_the_fitness_grid(twin_
     assert grids is not None and grids.matches(cloud=lc.refine.map_points, halo_m=lc.regions.halo_m,
                                                voxel_m=FITNESS_VOXEL_M)
     assert not grids.points.flags.writeable  # memory-mapped, like the clouds
+    assert grids.tree_leaf == LEAF_SIZE
     for k, region in enumerate(site.regions):
         halo = halo_cloud(site, site.regions, region, grids.cloud, grids.halo_m)
         keep = voxel_indices(halo.points.astype(np.float64), grids.voxel_m)
+        keep = keep[tree_order(halo.points[keep])]  # stored in the order of the region's KD-tree
         rows = grids.rows(k)
         assert np.array_equal(rows["xyz"], halo.points[keep]) and np.array_equal(rows["rgb"], halo.colors[keep])
         assert np.array_equal(rows["cls"], halo.class_index[keep])
@@ -110,19 +113,29 @@ def test_the_stored_region_grids_are_each_regions_halo_on_the_fitness_grid(twin_
 def test_region_maps_from_the_stored_grids_answer_as_the_maps_built_on_use(twin_rooms_dir: Path,
                                                                             twin_shared_view) -> None:
     frame, T_true = twin_shared_view
-    stored_site, built_site = Site.load(twin_rooms_dir), Site.load(twin_rooms_dir)
+    stored_site, built_site, unordered_site = (Site.load(twin_rooms_dir) for _ in range(3))
     built_site.region_grids = None  # a bundle composed before the grids were stored
+    # one composed before they were stored in the order of their trees
+    unordered_site.region_grids = replace(unordered_site.region_grids, tree_leaf=0)
     in_a = replace(frame, search_region=SearchRegion(region_ids=("a",)))
-    stored, built = Localizer.from_site(stored_site), Localizer.from_site(built_site)
-    a, b = stored.localize(in_a), built.localize(in_a)
-    assert a.status == b.status == Status.OK
+    stored, built, unordered = (Localizer.from_site(s) for s in (stored_site, built_site, unordered_site))
+    a, b, c = stored.localize(in_a), built.localize(in_a), unordered.localize(in_a)
+    assert a.status == b.status == c.status == Status.OK
     assert np.linalg.norm(a.T_map_camera[:3, 3] - T_true[:3, 3]) < 0.05
-    made, on_use = stored.maps.index(stored.maps.regions[0]), built.maps.index(built.maps.regions[0])
-    # the stored grid is the map built on use (the region's halo, one point per fitness voxel): the same points, and
-    # the same answer
-    assert np.array_equal(made.refine_map.xyz, on_use.refine_map.xyz)
+    made, on_use, ordered_on_use = (loc.maps.index(loc.maps.regions[0]) for loc in (stored, built, unordered))
+    # the stored grid is the map built on use (the region's halo, one point per fitness voxel, in tree order): the
+    # same points, and the same answer
+    assert np.array_equal(made.refine_map.fit_xyz, on_use.refine_map.fit_xyz)
     assert np.array_equal(made.refine_map.fit_cls, on_use.refine_map.fit_cls)
-    assert np.allclose(a.T_map_camera, b.T_map_camera, atol=1e-9)
+    # a stored grid in another order is put in tree order on use: the same points (within a leaf, in another order)
+    def rows(refine_map) -> np.ndarray:
+        table = np.column_stack([refine_map.fit_xyz, refine_map.fit_cls])
+        return table[np.lexsort(table.T)]
+
+    assert np.array_equal(rows(made.refine_map), rows(ordered_on_use.refine_map))
+    assert made.refine_map.fit_xyz.base is made.refine_map.xyz  # read in order: not copied, not sorted
+    assert np.allclose(a.T_map_camera, b.T_map_camera, atol=1e-9) and np.allclose(a.T_map_camera, c.T_map_camera,
+                                                                                atol=1e-9)
     # settings the grids were not made with: the localizer builds its own
     other = Localizer.from_site(stored_site, LocalizeConfig(regions=RegionConfig(halo_m=1.0)))
     assert len(other.maps.index(other.maps.regions[0]).refine_map.xyz) != len(made.refine_map.xyz)
@@ -223,10 +236,10 @@ def test_a_warmed_localizer_compiles_nothing_on_its_first_building_frames(twin_r
     # (seconds): small_gicp's column-major points did, in the grid GICP.
     from numba.core.registry import CPUDispatcher
 
-    from cadreg.localize import field_kernels, grid_gicp, match, twins
+    from cadreg.localize import field_kernels, grid_gicp, match, point_tree, twins
 
     def signatures() -> dict[str, list]:
-        return {f"{m.__name__}.{name}": list(f.signatures) for m in (field_kernels, grid_gicp, match, twins)
+        return {f"{m.__name__}.{name}": list(f.signatures) for m in (field_kernels, grid_gicp, match, point_tree, twins)
                 for name, f in vars(m).items() if isinstance(f, CPUDispatcher)}
 
     frame, _ = twin_shared_view

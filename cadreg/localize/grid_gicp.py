@@ -21,7 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy.spatial import cKDTree
+
+from .point_tree import PointTree
 
 # A plane's covariance: unit spread along it, this across it (small_gicp's regularization):
 # U diag(PLANE_EPS, 1, 1) Uᵀ = I - (1 - PLANE_EPS) n nᵀ for the unit normal n.
@@ -32,7 +33,7 @@ LM_FACTOR = 10.0
 LM_TRIALS = 10
 
 
-def plane_normals(xyz: np.ndarray, tree: cKDTree, index: np.ndarray, k: int) -> np.ndarray:
+def plane_normals(xyz: np.ndarray, tree: PointTree, index: np.ndarray, k: int) -> np.ndarray:
     """(m, 3) unit normals of the points xyz[index]: the least axis of each one's k nearest points in `tree`
     (a KD-tree over xyz)."""
     if len(index) == 0:
@@ -52,7 +53,7 @@ def plane_covariance(normals: np.ndarray) -> np.ndarray:
 class MapNormals:
     """The GICP normals of a map's points (xyz (n, 3), map frame, with its KD-tree), each made on first use."""
 
-    def __init__(self, xyz: np.ndarray, tree: cKDTree, k: int) -> None:
+    def __init__(self, xyz: np.ndarray, tree: PointTree, k: int) -> None:
         self.xyz, self.tree, self.k = xyz, tree, k
         self.normals = np.zeros((len(xyz), 3))
         self._known = np.zeros(len(xyz), dtype=bool)
@@ -135,8 +136,9 @@ def gicp(target: MapNormals, source_xyz: np.ndarray, source_normals: np.ndarray,
 
 def warm() -> None:
     """Compile (or load from numba's cache) the loops below (`field_kernels.warm`)."""
-    xyz = np.random.default_rng(0).random((12, 3))
-    normals = plane_normals(xyz, cKDTree(xyz), np.arange(12), 10)
+    tree, _ = PointTree.sorted(np.random.default_rng(0).random((12, 3)))
+    xyz = tree.xyz
+    normals = plane_normals(xyz, tree, np.arange(12), 10)
     nn, found, M = np.arange(12), np.ones(12, dtype=bool), np.zeros((12, 3, 3))
     _linearize(xyz, normals, xyz, normals, nn, found, np.eye(3), np.zeros(3), PLANE_EPS, np.zeros((6, 6)),
                np.zeros(6), M)

@@ -32,7 +32,7 @@ from ..site.regions import CAMERA_MARGIN_M, Region
 from .cluster import cluster_objects
 from .color_gicp import rgb_to_lab
 from .bbs import GridPyramid, map_direction_histogram, polish, yaw_candidates
-from . import field_kernels, grid_gicp, match
+from . import field_kernels, grid_gicp, match, point_tree
 from . import twins as room_twins
 from .fallback import FpfhRansac
 from .field_view import FieldView, align_on_field
@@ -106,7 +106,7 @@ TOP_PERCENTILE = 98
 def compile_loops() -> None:
     """Compile (or load from numba's cache) every compiled loop the localizer runs: `Localizer.warm` at a server's
     start, the Dockerfile at build time."""
-    for module in (field_kernels, grid_gicp, match, room_twins):
+    for module in (field_kernels, grid_gicp, match, point_tree, room_twins):
         module.warm()
 
 

@@ -14,11 +14,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import small_gicp
-from scipy.spatial import cKDTree
 
 from ..errors import InvalidArgument
 from .color_gicp import ColorGicpTarget, color_gicp, prepare_cloud, rgb_to_lab
 from .grid_gicp import MapNormals, gicp, plane_normals
+from .point_tree import PointTree, tree_order
 from .points import FramePoints, voxel_indices
 
 REFINE_METHODS = ("color_gicp", "small_gicp", "open3d_colored_icp")
@@ -80,13 +80,16 @@ class RefineMap:
     """The map as the refinement sees it (map frame, metres).
 
     xyz : (n, 3) float; rgb : (n, 3) float in [0, 1]. gridded : the points are one per fitness_voxel_m voxel already.
-    stored_target : a building's region map; its GICP pairs the frame with the fitness grid through the fitness
-    KD-tree (`grid_gicp.py`) until it has done the work of building small_gicp's target (GRID_PAIRS_PER_MAP_POINT).
+    tree_ordered : gridded points in the order of their KD-tree (`point_tree.tree_order`: a building's stored
+    region grid), so that the tree is read, not built. stored_target : a building's region map; its GICP pairs the
+    frame with the fitness grid through the fitness KD-tree (`grid_gicp.py`) until it has done the work of building
+    small_gicp's target (GRID_PAIRS_PER_MAP_POINT).
     """
 
     def __init__(self, xyz: np.ndarray, rgb: np.ndarray, class_index: np.ndarray | None = None, *, fine_voxel_m: float = 0.025, coarse_voxel_m: float = 0.08,
                  color_scales_m: tuple[float, ...] = (0.08, 0.04, 0.02), color_weight_m: float = 0.05,
-                 fitness_voxel_m: float = FITNESS_VOXEL_M, stored_target: bool = False, gridded: bool = False) -> None:
+                 fitness_voxel_m: float = FITNESS_VOXEL_M, stored_target: bool = False, gridded: bool = False,
+                 tree_ordered: bool = False) -> None:
         self.xyz = np.asarray(xyz, dtype=np.float64)
         self.rgb = np.asarray(rgb, dtype=np.float64)
         self.fine_voxel_m = fine_voxel_m
@@ -98,21 +101,23 @@ class RefineMap:
         self._sg_fine: tuple[small_gicp.PointCloud, small_gicp.KdTree] | None = None
         # The coarse target likewise: a building's candidates are aligned on its distance field, not here.
         self._sg_coarse: tuple[small_gicp.PointCloud, small_gicp.KdTree] | None = None
-        # Points already one per fitness voxel (a building's region grid) are their own grid, not a copy of it: a
-        # building makes a region map for each room it refines in.
-        keep = slice(None) if gridded else voxel_indices(self.xyz, fitness_voxel_m)
+        # The fitness grid, in the order of its KD-tree (`point_tree.py`): one map point per fitness voxel, where the
+        # points are not that already (a building's region grid is, and is not copied: a building makes a region map
+        # for each room it refines in), put in tree order unless they come in it (a stored region grid does).
+        if gridded and tree_ordered:
+            keep = slice(None)
+        else:
+            keep = np.arange(len(self.xyz)) if gridded else voxel_indices(self.xyz, fitness_voxel_m)
+            keep = keep[tree_order(self.xyz[keep])]
         self.fit_xyz = self.xyz[keep]
         self._fit_keep = keep
         self._fit_lab: np.ndarray | None = None  # CIE Lab of fit_xyz, made on first use (`fit_lab`)
         self.fit_cls = (np.full(len(self.fit_xyz), -1, dtype=np.int64) if class_index is None
                         else np.asarray(class_index, dtype=np.int64)[keep])
-        # cKDTree, not small_gicp's KD-tree, for the nearest neighbours of `fitness` and `agreement`: small_gicp's is
-        # 2x faster for points on the map but has no distance bound, and for points off it (a wrong hypothesis, a
-        # frame looking past the map's edge) it took 30 ms for 1000 points where the bounded cKDTree takes 0.8.
-        # Midpoint splits without shrunk boxes (balanced_tree, compact_nodes off): half the build (15 ms where a
-        # building's region map of 120 k points took 30), and its queries were no slower; leaves of 32 points
-        # rather than 16, a sixth less again (21 -> 17 ms for 150 k points), queries as fast.
-        self.fit_tree = cKDTree(self.fit_xyz, leafsize=32, balanced_tree=False, compact_nodes=False)
+        # The nearest neighbours of `fitness`, `agreement` and the grid GICP, bounded by a distance: for points off
+        # the map (a wrong hypothesis, a frame looking past the map's edge) small_gicp's unbounded search took 30 ms
+        # for 1000 points where a bounded one takes 0.8.
+        self.fit_tree = PointTree(self.fit_xyz)
         # A building's region map often serves a few refinements before its cache drops it: its GICP normals are
         # made for the points those pair with, not for the whole map (`grid_gicp.py`), until its refinements have
         # paired as many frame points as small_gicp's whole target would cost (GRID_PAIRS_PER_MAP_POINT).
@@ -165,9 +170,9 @@ class RefineMap:
 
     # -- queries ----------------------------------------------------------------------------------------------
     def roi_count(self, center: np.ndarray, radius_m: float) -> int:
-        """Map points (at the fitness resolution) within `radius_m` of `center`. The count alone (return_length):
-        the list of a 3 m ball's indices costs twenty times the count (1.6 ms of a tracked frame's 20)."""
-        return int(self.fit_tree.query_ball_point(center, radius_m, return_length=True))
+        """Map points (at the fitness resolution) within `radius_m` of `center`. The count alone: the list of a
+        3 m ball's indices cost twenty times the count (1.6 ms of a tracked frame's 20)."""
+        return self.fit_tree.count_within(center, radius_m)
 
     def fitness(self, xyz_map: np.ndarray, *, inlier_m: float = 0.05) -> tuple[float, float]:
         """(fraction of points within inlier_m of the map, RMSE of those, metres); xyz_map (n, 3) map frame."""
@@ -264,10 +269,13 @@ class RefineMap:
         """GICP (`grid_gicp.gicp`) of the frame's points, on small_gicp's voxel grid (means of source_voxel_m
         voxels) with their own plane covariances, onto the fitness grid: the same two passes and the same
         covariance of the pose as the small_gicp path."""
-        # Contiguous: small_gicp hands its points over column-major, and the compiled loops are compiled (and
-        # warmed, `compile_loops`) for row-major arrays; any other layout compiles again on a worker's first frame.
-        src = np.ascontiguousarray(np.asarray(small_gicp.voxelgrid_sampling(points.xyz, source_voxel_m).points())[:, :3])
-        src_normals = plane_normals(src, cKDTree(src), np.arange(len(src)), GICP_NEIGHBORS)
+        # The tree's points are row-major (small_gicp hands its points over column-major, and the compiled loops
+        # are compiled and warmed, `compile_loops`, for row-major arrays: any other layout compiles again on a
+        # worker's first frame), in tree order: the GICP's sums do not depend on the order of its points.
+        sampled = np.asarray(small_gicp.voxelgrid_sampling(points.xyz, source_voxel_m).points())[:, :3]
+        src_tree, _ = PointTree.sorted(sampled)
+        src = src_tree.xyz
+        src_normals = plane_normals(src, src_tree, np.arange(len(src)), GICP_NEIGHBORS)
         T = T_init
         for corr in (WIDE_PASS * max_correspondence_m, max_correspondence_m):
             res = gicp(self.normals, src, src_normals, T, max_correspondence_m=corr, max_iterations=max_iterations,

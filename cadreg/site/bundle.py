@@ -77,13 +77,16 @@ class RegionGrids:
     its rows rather than by gathering and gridding the building's points.
 
     points : (n,) REGION_GRID_DTYPE rows, region after region in the order of the site's regions; offsets : (r + 1,)
-    int64, region k's rows are points[offsets[k]:offsets[k + 1]]."""
+    int64, region k's rows are points[offsets[k]:offsets[k + 1]]. tree_leaf : each region's rows are in the order
+    of its KD-tree of leaves of this many points (`localize.point_tree.tree_order`), so that a worker's tree is a
+    read; 0: in no such order (a bundle composed before trees were stored)."""
 
     points: np.ndarray
     offsets: np.ndarray
     cloud: str
     halo_m: float
     voxel_m: float
+    tree_leaf: int = 0
 
     def rows(self, k: int) -> np.ndarray:
         return self.points[int(self.offsets[k]):int(self.offsets[k + 1])]
@@ -102,7 +105,7 @@ class RegionGrids:
 
     def to_manifest(self) -> dict[str, Any]:
         return {"cloud": self.cloud, "halo_m": float(self.halo_m), "voxel_m": float(self.voxel_m),
-                "offsets": [int(x) for x in self.offsets]}
+                "tree_leaf": int(self.tree_leaf), "offsets": [int(x) for x in self.offsets]}
 
 
 @dataclass(eq=False)  # arrays inside: compare sites by version, not with ==
@@ -336,14 +339,15 @@ def _stored_region_grids(root: Path, meta: dict[str, Any]) -> RegionGrids:
         info = meta["region_grids"]
         offsets = np.asarray(info["offsets"], dtype=np.int64).reshape(-1)
         cloud, halo_m, voxel_m = str(info["cloud"]), float(info["halo_m"]), float(info["voxel_m"])
+        tree_leaf = int(info.get("tree_leaf", 0))
         regions = meta.get("regions") or []
     except (KeyError, TypeError, ValueError) as exc:
         raise InvalidFileError(root / "site.json", f"malformed 'region_grids': {exc!r}") from None
     if not (points.dtype == REGION_GRID_DTYPE and points.ndim == 1 and len(offsets) == len(regions) + 1
             and offsets[0] == 0 and offsets[-1] == len(points) and np.all(np.diff(offsets) >= 0)
-            and cloud in CLOUDS and halo_m >= 0 and voxel_m > 0):
+            and cloud in CLOUDS and halo_m >= 0 and voxel_m > 0 and tree_leaf >= 0):
         raise InvalidFileError(path, "not the region grids site.json's 'region_grids' and 'regions' describe")
-    return RegionGrids(points, offsets, cloud, halo_m, voxel_m)
+    return RegionGrids(points, offsets, cloud, halo_m, voxel_m, tree_leaf)
 
 
 def whole_site_region(site: Site, region_id: str | None = None) -> Region:
