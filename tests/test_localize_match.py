@@ -8,8 +8,8 @@ from scipy.spatial.transform import Rotation
 
 from cadreg.geometry import (invert_T, make_T, pose_errors, rotation_angle_deg, rotation_between,
                              transform_points)
-from cadreg.localize.match import (PAIR_REACH_M, Hypotheses, MapGraph, distinct_best, gravity_hypotheses,
-                                   kabsch_hypotheses, score_graph)
+from cadreg.localize.match import (PAIR_REACH_M, Hypotheses, MapGraph, distinct_best, distinct_pairs,
+                                   gravity_hypotheses, kabsch_hypotheses, score_graph)
 from cadreg.localize.score import DistanceField, score_poses
 
 
@@ -185,3 +185,15 @@ def test_distinct_best_keeps_what_pairwise_tests_keep() -> None:
                 expected.append(int(i))
         assert distinct_best(R, t, order, count=count) == expected
     assert distinct_best(R, t, np.array([], dtype=np.int64), count=3) == []
+
+
+def test_distinct_pairs_tell_every_pair_as_the_rule_written_out() -> None:
+    rng = np.random.default_rng(4)
+    T = np.tile(np.eye(4), (60, 1, 1))
+    T[:, :3, :3] = Rotation.from_rotvec(rng.normal(scale=0.3, size=(60, 3))).as_matrix()
+    T[:, :3, 3] = rng.uniform(0.0, 0.5, size=(60, 3))
+    A, B = T[:25], T[25:]
+    expected = np.array([[np.linalg.norm(a[:3, 3] - b[:3, 3]) > 0.25 or rotation_angle_deg(a[:3, :3].T @ b[:3, :3]) > 15.0
+                          for b in B] for a in A])
+    got = distinct_pairs(A, B, min_translation_m=0.25, min_rotation_deg=15.0)
+    assert got.shape == (25, 35) and 0 < got.sum() < got.size and np.array_equal(got, expected)

@@ -364,6 +364,16 @@ def distinct_best(R: np.ndarray, t: np.ndarray, order: np.ndarray, *, count: int
     return [int(i) for i in kept]
 
 
+def distinct_pairs(A: np.ndarray, B: np.ndarray, *, min_translation_m: float = 0.25,
+                   min_rotation_deg: float = 15.0) -> np.ndarray:
+    """A (a, 4, 4), B (b, 4, 4) poses -> (a, b) bool: whether each pair is distinct as `distinct_best` tells it
+    (farther apart than min_translation_m, or turned more than min_rotation_deg), every pair at once."""
+    d = A[:, None, :3, 3] - B[None, :, :3, 3]
+    far = np.einsum("abi,abi->ab", d, d) > min_translation_m ** 2
+    trace = np.einsum("aij,bij->ab", A[:, :3, :3], B[:, :3, :3])
+    return far | (trace < 1.0 + 2.0 * np.cos(np.radians(min_rotation_deg)))
+
+
 def warm() -> None:
     """Compile (or load from numba's cache) `distinct_best`'s loop (`field_kernels.warm`)."""
     distinct_best(np.eye(3)[None], np.zeros((1, 3)), np.zeros(1, dtype=np.int64), count=1)
