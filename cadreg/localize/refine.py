@@ -271,7 +271,7 @@ class RefineMap:
         covariance of the pose as the small_gicp path."""
         # The tree's points are row-major (small_gicp hands its points over column-major, and the compiled loops
         # are compiled and warmed, `compile_loops`, for row-major arrays: any other layout compiles again on a
-        # worker's first frame), in tree order: the GICP's sums do not depend on the order of its points.
+        # worker's first frame), in tree order (the GICP's sums are the same in any order, up to rounding).
         sampled = np.asarray(small_gicp.voxelgrid_sampling(points.xyz, source_voxel_m).points())[:, :3]
         src_tree, _ = PointTree.sorted(sampled)
         src = src_tree.xyz
