@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cadreg.config import LabelFreeConfig, LocalizeConfig, RegionConfig
+from cadreg.config import LabelFreeConfig, LocalizeConfig, MatchConfig, RegionConfig
 from cadreg.errors import BundleIntegrityError
 from cadreg.localize.localizer import Localizer
 from cadreg.localize.regions import halo_cloud, region_cloud
@@ -249,3 +249,18 @@ def test_a_warmed_localizer_compiles_nothing_on_its_first_building_frames(twin_r
     for f in (frame, replace(frame, labels=None)):
         assert loc.localize(f).diagnostics.refinement.method == "grid_gicp"
     assert signatures() == warmed
+
+
+def test_an_uncertain_answer_lists_its_pose_once(twin_rooms_dir: Path, twin_shared_view) -> None:
+    # Uncertain: the refined pose goes first among the hypotheses, and the candidates at it (the winner's coarse
+    # pose) are not listed again beside it.
+    from cadreg.localize.match import distinct_pairs
+
+    frame, T_true = twin_shared_view
+    loc = Localizer.from_site(Site.load(twin_rooms_dir), LocalizeConfig(match=MatchConfig(min_ok_confidence=1.0)))
+    for f in (frame, replace(frame, labels=None)):
+        r = loc.localize(replace(f, search_region=SearchRegion(region_ids=("a",))))
+        assert r.status == Status.UNCERTAIN and r.T_map_camera is None
+        assert np.linalg.norm(r.hypotheses[0].T_map_camera[:3, 3] - T_true[:3, 3]) < 0.05
+        poses = np.array([h.T_map_camera for h in r.hypotheses])
+        assert distinct_pairs(poses, poses)[np.triu_indices(len(poses), 1)].all()

@@ -980,8 +980,12 @@ class Localizer:
                               f"pose std {100 * std:.2f} cm, depth agreement {choice.depth_agreement:.2f}"
                               + (f"; {100 * mc.slide_probe_m:.0f} cm along the frame's least constrained direction "
                                  "it fits as well" if slides else ""))
+            # Listed once: the candidates at the refined pose (the winner's coarse pose, a few millimetres off) are
+            # not listed beside it.
             best = replace(winner.hypothesis, T_map_camera=T)
-            return LocalizationResult(Status.UNCERTAIN, None, confidence=trust, hypotheses=[best] + hypotheses[:top_k - 1],
+            apart = self._distinct_from_all([h.T_map_camera for h in hypotheses], [T])
+            others = [h for h, keep in zip(hypotheses, apart) if keep]
+            return LocalizationResult(Status.UNCERTAIN, None, confidence=trust, hypotheses=[best] + others[:top_k - 1],
                                       diagnostics=diag, frame_id=frame_id)
         if status == Status.AMBIGUOUS:
             hypotheses += self._rivals(candidates[top_k:], choice) + scan.unverified
