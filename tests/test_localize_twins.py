@@ -57,6 +57,42 @@ def test_a_room_with_too_few_objects_has_no_copies() -> None:
     assert RoomTwins(graph, region, np.array([0.0, 0.0, 1.0]), 2).of(0) == []
 
 
+def test_rooms_without_objects_are_copies_when_their_shapes_are() -> None:
+    # Three rooms of bare surfaces: an L-shaped room of a floor, walls and a shelf; its copy turned a quarter turn
+    # and shifted; a room of the same box whose shelf stands elsewhere (no copy).
+    from cadreg.localize.score import DistanceField
+
+    rng = np.random.default_rng(5)
+
+    def room(shelf_x: float) -> np.ndarray:
+        u = rng.uniform(0, 1, (6000, 2))
+        floor = np.column_stack([4 * u[:2000, 0], 3 * u[:2000, 1], np.zeros(2000)])
+        wall_x = np.column_stack([4 * u[2000:4000, 0], np.zeros(2000), 1.2 * u[2000:4000, 1]])
+        wall_y = np.column_stack([np.zeros(1000), 3 * u[4000:5000, 0], 1.2 * u[4000:5000, 1]])
+        shelf = np.column_stack([shelf_x + 0.8 * u[5000:, 0], 2.0 + np.zeros(1000), 1.2 * u[5000:, 1]])
+        return np.concatenate([floor, wall_x, wall_y, shelf])
+
+    a = room(0.5)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    T[:3, 3] = [10.0, 1.0, 0.0]
+    b = a @ T[:3, :3].T + T[:3, 3]
+    c = room(2.7) + [0.0, 8.0, 0.0]
+    clouds = [a, b, c]
+    bounds = np.array([[p.min(axis=0), p.max(axis=0)] for p in clouds])
+    field = DistanceField(np.concatenate(clouds), voxel_m=0.03)
+    graph, region = _graph([(np.zeros((0, 3)), np.zeros(0, dtype=np.int64))] * 3)
+    twins = RoomTwins(graph, region, np.array([0.0, 0.0, 1.0]), 3, field=field, bounds=bounds,
+                      sample=lambda k: clouds[k][::5])
+    (found,) = twins.of(0)
+    assert found[0] == 1
+    t_err, r_err = pose_errors(found[1], T)
+    assert t_err < 0.05 and r_err < 0.5
+    assert [b for b, _ in twins.of(2)] == []  # the same box, its shelf elsewhere: no copy
+    # without the field (a graph's objects only), bare rooms have no copies
+    assert RoomTwins(graph, region, np.array([0.0, 0.0, 1.0]), 3).of(0) == []
+
+
 @pytest.mark.realdata
 def test_a_copy_the_graph_match_left_out_still_makes_a_shared_view_ambiguous(twin_rooms_dir: Path,
                                                                                  twin_shared_view) -> None:

@@ -36,7 +36,7 @@ from . import field_kernels, grid_gicp, match, point_tree
 from . import twins as room_twins
 from .fallback import FpfhRansac
 from .field_view import FieldView, align_on_field
-from .twins import RoomTwins
+from .twins import SHAPE_POINTS, RoomTwins
 from .gravity import estimate_floor, map_floor_height, map_up_axis, planar_normals
 from .match import (Hypotheses, MapGraph, distinct_best, distinct_pairs, gravity_hypotheses, kabsch_hypotheses,
                     score_graph)
@@ -140,7 +140,10 @@ class Localizer:
         self._fpfh: FpfhRansac | None = None
         self._whole: RefineMap | None = None
         self._pyramid: tuple[GridPyramid, np.ndarray | None] | None = None
-        self.twins = RoomTwins(graph, self.node_region, up, len(maps.regions)) if len(maps) > 1 else None
+        self.twins = (RoomTwins(graph, self.node_region, up, len(maps.regions), field=field,
+                                bounds=np.array([r.bounds for r in maps.regions]),
+                                sample=lambda k: _region_sample(maps.site, maps.regions[k], SHAPE_POINTS))
+                      if len(maps) > 1 else None)
         # A building's first look at its graph hypotheses reads a coarse copy of the field (`_hypotheses`).
         self.first_look_field = field.coarsened(FIRST_LOOK_COARSENING) if len(maps) > 1 else None
 
@@ -1240,6 +1243,15 @@ class Localizer:
         if not len(poses) or not len(others):
             return np.ones(len(poses), dtype=bool)
         return self._distinct_pairs(np.asarray(poses), np.asarray(others)).all(axis=1)
+
+
+def _region_sample(site: Site, region, count: int) -> np.ndarray:
+    """(<= count, 3) points of `region`'s own (the enhanced map's rows of it, evenly strided; map frame)."""
+    start, stop = region.map_range
+    step = max(1, (stop - start) // count)
+    xyz = np.asarray(site.map.points[start:stop:step], dtype=np.float64)
+    site.release("map", slice(start, stop))
+    return xyz
 
 
 def _surface_sample(site: Site, maps: RegionMaps) -> PointSet:
