@@ -322,6 +322,9 @@ class RegionConfig(_Section):
                                   "is ambiguous, however the frame's noise ranks the two")
     min_view_agreement: float = Field(0.6, ge=0, le=1, description="below this view agreement the graph's best "
                                       "is weak in a building and the fallbacks join")
+    min_one_object_view_agreement: float = Field(0.8, ge=0, le=1, description="the same for a best pose that rests "
+                                                 "on one matched object (or none): one object, a whiteboard seen in "
+                                                 "part, pins a pose less than several do")
     search_max_nodes: int = Field(3000, ge=10, description="the label-free search's nodes kept per level in a "
                                   "building (LabelFreeConfig.max_nodes in one room): a building's search box holds "
                                   "many rooms, and at 1200 the search cut its way past the view's room")

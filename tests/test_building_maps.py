@@ -264,3 +264,27 @@ def test_an_uncertain_answer_lists_its_pose_once(twin_rooms_dir: Path, twin_shar
         assert np.linalg.norm(r.hypotheses[0].T_map_camera[:3, 3] - T_true[:3, 3]) < 0.05
         poses = np.array([h.T_map_camera for h in r.hypotheses])
         assert distinct_pairs(poses, poses)[np.triu_indices(len(poses), 1)].all()
+
+
+def test_a_buildings_answer_on_one_object_is_held_to_the_higher_view_bar(twin_rooms_dir: Path,
+                                                                         twin_shared_view) -> None:
+    # One matched object pins a pose less than several: below RegionConfig.min_one_object_view_agreement the
+    # fallbacks join. A bar of 1.0 for one-object answers, the usual one for the others: the frame with only its
+    # largest object labelled searches without labels too, the frame with all its objects does not.
+    frame, T_true = twin_shared_view
+    site = Site.load(twin_rooms_dir)
+    classes = site.classes_for_labels(frame.label_set, frame.labels)
+    ids, counts = np.unique(frame.labels[classes >= 0], return_counts=True)
+    only_largest = np.where(frame.labels == ids[np.argmax(counts)], frame.labels, 0).astype(frame.labels.dtype)
+    one = replace(frame, labels=only_largest, search_region=SearchRegion(region_ids=("a",)))
+    loc = Localizer.from_site(site, LocalizeConfig(regions=RegionConfig(min_one_object_view_agreement=1.0)))
+
+    def searched(f) -> tuple[bool, int]:
+        r = loc.localize(f)
+        assert np.linalg.norm((r.T_map_camera if r.T_map_camera is not None else r.hypotheses[0].T_map_camera)[:3, 3]
+                              - T_true[:3, 3]) < 0.05
+        return any(n.startswith("label-free search") for n in r.diagnostics.notes), len(r.diagnostics.scan_objects)
+
+    assert searched(one) == (True, 1)
+    full_searched, objects = searched(replace(frame, search_region=SearchRegion(region_ids=("a",))))
+    assert objects > 1 and not full_searched

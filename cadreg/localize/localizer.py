@@ -453,8 +453,11 @@ class Localizer:
                 # A client's pose prior is one more hypothesis, checked like the others (never trusted blindly).
                 candidates += self._align(_single(prior), source, scan, origin="prior")
         best = max((c.score for c in candidates), default=0.0)
-        # Below this the graph's best is weak: its coarse fitness, or in a building its view agreement.
-        enough = fb.min_graph_fitness if scan.view is None else self.config.regions.min_view_agreement
+        # Below this the graph's best is weak: its coarse fitness, or in a building its view agreement, held higher
+        # when the best rests on one object (a 4-room building's view of a wall and part of a whiteboard was
+        # answered `ok` 1.2 m along the wall, view agreement 0.71, the whiteboard matched; the label-free search
+        # found the view's pose at 0.77).
+        enough = fb.min_graph_fitness if scan.view is None else self._view_bar(candidates)
         if fb.enabled and best < enough and not self._best_agrees_along_rays(candidates, scan, diag):
             with timer("fallback"):
                 rooms = self._candidate_regions(candidates)
@@ -478,6 +481,15 @@ class Localizer:
             earlier_alike = np.tril(~self._distinct_pairs(poses, poses), k=-1)  # [k, j]: j < k at k's pose
             candidates = [c for c, alike in zip(candidates, earlier_alike) if not alike.any()]
         return candidates
+
+    def _view_bar(self, candidates: list[Candidate]) -> float:
+        """The view agreement a building's best candidate needs for the fallbacks not to join
+        (RegionConfig.min_view_agreement; min_one_object_view_agreement when it rests on at most one object)."""
+        rg = self.config.regions
+        best = max(candidates, key=lambda c: c.score, default=None)
+        if best is None or int(np.sum(best.assignment >= 0)) > 1:
+            return rg.min_view_agreement
+        return max(rg.min_view_agreement, rg.min_one_object_view_agreement)
 
     def _best_agrees_along_rays(self, candidates: list[Candidate], scan: Scan, diag: Diagnostics) -> bool:
         """The best candidate is the graph's, and its coarse pose, weak by its score, renders as the frame measured
