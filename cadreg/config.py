@@ -167,6 +167,9 @@ class MatchConfig(_Section):
     min_depth_agreement: float = Field(0.75, ge=0, le=1, description="a pose at which the frame's depth agrees with "
                                        "the map's surfaces in less than this share of the view the two share (render "
                                        "and compare, `ViewCheck.depth_agreement`) is uncertain")
+    min_depth_agreement_passed_over: float = Field(0.9, ge=0, le=1, description="the same for an answer taken "
+                                                   "after every better-ranked pose saw through the map: their scores "
+                                                   "of 0 are no rival's, and it must agree with the map on its own")
     # 0.4 cm until the slide probe (slide_*) tested what it stands for: right label-free answers in the 10- and
     # 100-room buildings slid 0.41-0.56 cm and were held `uncertain` (10 rooms: 6 of the 8 unique views missed);
     # at 0.6 cm, and at 0.8, no set gained a wrong `ok` (scene0470 renders, the buildings, the mixed building,

@@ -120,6 +120,7 @@ class Choice:
     depth_agreement: float = 1.0
     coverage: float = 1.0
     rivals: list[Candidate] | None = None
+    passed_over: bool = False  # taken after every better-ranked contender saw through the map
 
     @property
     def support(self) -> float:
