@@ -203,9 +203,14 @@ class RefineConfig(_Section):
     coarse_voxel_m: float = Field(0.08, gt=0, description="map and frame resolution of the coarse check of hypotheses")
     source_voxel_m: float = Field(0.04, gt=0, description="frame resolution for the fine refinement")
     max_correspondence_m: float = Field(0.1, gt=0)
-    max_iterations: int = Field(18, ge=1, description="per GICP pass; a start the coarse stage got right converges "
-                                "in 2–6, and a wrong one spent its 30 (the old default) oscillating: on 7-Scenes the "
-                                "p99 fell by a quarter to a third with the same answers")
+    max_iterations: int = Field(10, ge=1, description="per GICP pass; a start the coarse stage got right converges "
+                                "in 2–6 (2 / 4 / 17 at p50 / p90 / p99 on 7-Scenes), and a wrong one spent its budget "
+                                "oscillating: 30 -> 18 cut the 7-Scenes p99 by a quarter to a third, 18 -> 10 by a "
+                                "quarter again, with the same answers")
+    grid_max_iterations: int = Field(18, ge=1, description="the same for a building's GICP on its region maps "
+                                     "(`grid_gicp.py`): its starts, pulled onto the field, took 7-9 iterations a pass "
+                                     "on average at 100 rooms, and a twin's refinement cut at 10 lost a right "
+                                     "label-free answer")
     color_scales_m: tuple[float, ...] = Field((0.08, 0.04, 0.02), min_length=1, description="colour GICP scales, coarse to fine")
     color_weight_m: float = Field(0.05, ge=0, description="λ: metres of joint-space distance per unit of Lab/100")
     inlier_m: float = Field(0.05, gt=0, description="a frame point this close to the map is an inlier")

@@ -70,6 +70,23 @@ def test_a_buildings_gicp_on_its_fitness_grid_refines_as_small_gicp_does(scene_a
     assert grid._sg_fine is None and 0 < grid.normals.known < 0.5 * len(grid.fit_xyz)
 
 
+def test_each_gicp_keeps_its_own_iteration_budget(scene_and_frame) -> None:
+    # RefineConfig.max_iterations bounds small_gicp's passes, grid_max_iterations the region map's GICP.
+    scene, frame, T, rmap = scene_and_frame
+    pts = frame_to_points(frame)
+    site = scene.site
+    T0 = _perturbed(T, seed=3, t_m=0.08, r_deg=3.0)
+    grid = RefineMap(site.map.points, site.map.colors / 255.0, site.map.class_index, stored_target=True)
+    off = lambda out: pose_errors(out.T_map_camera, T)[0]  # noqa: E731
+    cut = grid.refine(pts, T0, method="small_gicp", max_iterations=30, grid_max_iterations=1)
+    full = grid.refine(pts, T0, method="small_gicp", max_iterations=1, grid_max_iterations=30)
+    assert cut.method == full.method == "grid_gicp" and cut.iterations == 1 and not cut.converged
+    assert off(full) < 0.01 < off(cut)
+    cut = rmap.refine(pts, T0, method="small_gicp", max_iterations=1, grid_max_iterations=30)
+    full = rmap.refine(pts, T0, method="small_gicp", max_iterations=30, grid_max_iterations=1)
+    assert cut.method == full.method == "small_gicp" and off(full) < 0.01 and off(full) < off(cut)
+
+
 def test_a_region_map_builds_small_gicps_target_once_its_refinements_would_have_paid_for_it(scene_and_frame) -> None:
     scene, frame, T, _ = scene_and_frame
     pts = frame_to_points(frame)

@@ -923,7 +923,8 @@ class Localizer:
     def _refine_one(self, refine_map: RefineMap, points: FramePoints, T_start: np.ndarray, method: str):
         rc = self.config.refine
         return refine_map.refine(points, T_start, method=method, epsilon=rc.epsilon, source_voxel_m=rc.source_voxel_m,
-                                      max_correspondence_m=rc.max_correspondence_m, max_iterations=rc.max_iterations)
+                                 max_correspondence_m=rc.max_correspondence_m, max_iterations=rc.max_iterations,
+                                 grid_max_iterations=rc.grid_max_iterations)
 
     def _result(self, scan: Scan, candidates: list[Candidate], choice: Choice, top_k: int, diag: Diagnostics,
                 frame_id: str | None) -> LocalizationResult:

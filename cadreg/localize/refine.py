@@ -219,13 +219,16 @@ class RefineMap:
 
     def refine(self, points: FramePoints, init_T_map_camera: np.ndarray, *, method: str = "small_gicp",
                epsilon: float = 1e-3, source_voxel_m: float = 0.04, max_correspondence_m: float = 0.1,
-               max_iterations: int = 30) -> RefineOutcome:
-        """Refine T_map_camera from `init_T_map_camera` with the frame's points (colour-camera frame)."""
+               max_iterations: int = 30, grid_max_iterations: int | None = None) -> RefineOutcome:
+        """Refine T_map_camera from `init_T_map_camera` with the frame's points (colour-camera frame).
+        max_iterations : per pass; grid_max_iterations : per pass of the GICP on a building's region map (default:
+        max_iterations)."""
         T_init = np.asarray(init_T_map_camera, dtype=np.float64)
         if method == "small_gicp" and self.stored_target and self._sg_fine is None and (
                 self.grid_pairs < GRID_PAIRS_PER_MAP_POINT * len(self.xyz)):
             return self._refine_on_grid(points, T_init, epsilon=epsilon, source_voxel_m=source_voxel_m,
-                                        max_correspondence_m=max_correspondence_m, max_iterations=max_iterations)
+                                        max_correspondence_m=max_correspondence_m,
+                                        max_iterations=grid_max_iterations or max_iterations)
         if method == "small_gicp":
             src, _ = small_gicp.preprocess_points(points.xyz, source_voxel_m, num_neighbors=GICP_NEIGHBORS)
             target, tree = self.fine_target()
