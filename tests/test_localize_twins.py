@@ -82,13 +82,19 @@ def test_rooms_without_objects_are_copies_when_their_shapes_are() -> None:
     bounds = np.array([[p.min(axis=0), p.max(axis=0)] for p in clouds])
     field = DistanceField(np.concatenate(clouds), voxel_m=0.03)
     graph, region = _graph([(np.zeros((0, 3)), np.zeros(0, dtype=np.int64))] * 3)
-    twins = RoomTwins(graph, region, np.array([0.0, 0.0, 1.0]), 3, field=field, bounds=bounds,
-                      sample=lambda k: clouds[k][::5])
+    read: list[int] = []
+
+    def sample(k: int) -> np.ndarray:
+        read.append(k)
+        return clouds[k][::5]
+
+    twins = RoomTwins(graph, region, np.array([0.0, 0.0, 1.0]), 3, field=field, bounds=bounds, sample=sample)
     (found,) = twins.of(0)
     assert found[0] == 1
     t_err, r_err = pose_errors(found[1], T)
     assert t_err < 0.05 and r_err < 0.5
     assert [b for b, _ in twins.of(2)] == []  # the same box, its shelf elsewhere: no copy
+    assert sorted(read) == [0, 2]  # each room's points read once, whatever it is tried against
     # without the field (a graph's objects only), bare rooms have no copies
     assert RoomTwins(graph, region, np.array([0.0, 0.0, 1.0]), 3).of(0) == []
 

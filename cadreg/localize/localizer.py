@@ -1267,8 +1267,9 @@ class Localizer:
         return self._distinct_pairs(np.asarray(poses), np.asarray(others)).all(axis=1)
 
 
-def _region_sample(site: Site, region, count: int) -> np.ndarray:
-    """(<= count, 3) points of `region`'s own (the enhanced map's rows of it, evenly strided; map frame)."""
+def _region_sample(site: Site, region: Region, count: int) -> np.ndarray:
+    """(m, 3) points of `region`'s own, count <= m < 2 count (all of them when it has fewer): the enhanced map's
+    rows of it, evenly strided; map frame."""
     start, stop = region.map_range
     step = max(1, (stop - start) // count)
     xyz = np.asarray(site.map.points[start:stop:step], dtype=np.float64)

@@ -69,6 +69,7 @@ class RoomTwins:
         # Boxes are the map's axes: quarter turns about up are turns about z only where up is z (a composed building).
         z_up = bool(np.dot(up, [0.0, 0.0, 1.0]) > 1.0 - 1e-6)
         self._field, self._bounds, self._sample = (field, bounds, sample) if z_up else (None, None, None)
+        self._samples: dict[int, np.ndarray] = {}  # each region's sample, read once for all the rooms it is tried on
 
     def of(self, a: int) -> list[tuple[int, np.ndarray]]:
         if a not in self._found:
@@ -119,14 +120,15 @@ class RoomTwins:
             T[:2, 3] = centre_b[:2] - T[:2, :2] @ centre_a[:2]  # rooms of one floor: heights stay
             poses.append(T)
         poses = np.array(poses)
-        scores = score_poses(self._field, self._sample(a), poses[:, :3, :3], poses[:, :3, 3])
+        if a not in self._samples:
+            self._samples[a] = self._sample(a)
+        scores = score_poses(self._field, self._samples[a], poses[:, :3, :3], poses[:, :3, 3])
         best = int(np.argmax(scores))
         return poses[best] if scores[best] >= SHAPE_MIN_SCORE else None
 
     def _transform(self, na: np.ndarray, nb: np.ndarray) -> np.ndarray | None:
-        """T (4, 4, map frame) taking the objects `na` onto the objects `nb`, or None when they are no copies."""
-        if min(len(na), len(nb)) < MIN_SHARED:
-            return None
+        """T (4, 4, map frame) taking the objects `na` onto the objects `nb` (at least MIN_SHARED each, `_pair`),
+        or None when they are no copies."""
         inliers, yaw, tx, ty = _best_turn(self._level[na], self._level[nb], self._cls[na], self._cls[nb],
                                           MIN_PAIR_M, PAIR_TOLERANCE_M, MATCH_TOLERANCE_M)
         if inliers < max(MIN_SHARED, MIN_SHARED_SHARE * min(len(na), len(nb))):
