@@ -171,10 +171,12 @@ def test_poses_that_look_alike_are_told_apart_by_the_frame_objects(twin_rooms_di
 
 
 def test_the_copies_of_a_pose_the_objects_put_first_are_looked_at(scene0470_site_dir: Path, scene0470_dir: Path,
-                                                                  tmp_path: Path) -> None:
+                                                                  twin_shared_view, tmp_path: Path) -> None:
     """`Localizer._promoted_twins`: when the frame's objects put a rival first, the copies of the rival's view are
     looked at before the answer may stand alone. Rooms "a" and "c" are the same room, "b" lacks the chair and the
-    bin: the chair view's pose in "a" has its copy in "c" (the same view along every ray) as a rival."""
+    bin: the chair view's pose in "a" has its copy in "c" (the same view along every ray) as a rival, and its
+    copy in "b", which lacks an object the frame shows, is not looked at (`Localizer._shows_objects`); a view of
+    the table's corner, which all three rooms hold, has a copy in each."""
     import json
 
     from cadreg.io.frames import RecordedFrames
@@ -208,6 +210,14 @@ def test_the_copies_of_a_pose_the_objects_put_first_are_looked_at(scene0470_site
     winner = Candidate(T_a, score, Hypothesis(T_a, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64))
     candidates, renders = [winner], {id(out): render}
     twins = loc._promoted_twins(scan, [(score, out, winner, 0.0)], scan.center_camera, candidates, renders)
-    in_c = np.array(moved(2 * ROOM_B_OFFSET_M)) @ T_a
+    in_b, in_c = np.array(moved(ROOM_B_OFFSET_M)) @ T_a, np.array(moved(2 * ROOM_B_OFFSET_M)) @ T_a
     assert any(pose_errors(t.T_map_camera, in_c)[0] < 0.05 and t.hypothesis.region == "c" for t in twins)
     assert all(any(t is c for c in candidates) for t in twins)  # listed among the candidates the result reports
+    # the copy in "b" lacks the chair the frame shows: not a copy of this view, and never rendered as one
+    assert loc._shows_objects(scan, T_a, [in_b, in_c]).tolist() == [False, True]
+    assert not any(t.hypothesis.region == "b" for t in twins)
+    shared, T_shared = twin_shared_view
+    shared_scan = loc._scan(shared, diag, StageTimer(diag.stage_ms))
+    assert shared_scan.clusters  # (the test means something only with objects in view)
+    copies = [np.array(moved(dx)) @ T_shared for dx in (ROOM_B_OFFSET_M, 2 * ROOM_B_OFFSET_M)]
+    assert loc._shows_objects(shared_scan, T_shared, copies).tolist() == [True, True]

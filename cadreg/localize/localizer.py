@@ -716,6 +716,9 @@ class Localizer:
         apart = self._distinct_from_all([T_ba @ T_map_camera for _, T_ba in copies],
                                         [c.T_map_camera for c in candidates[:refined]])
         copies = [copy for copy, keep in zip(copies, apart) if keep]
+        if copies and scan.clusters:
+            shows = self._shows_objects(scan, T_map_camera, [T_ba @ T_map_camera for _, T_ba in copies])
+            copies = [copy for copy, keep in zip(copies, shows) if keep]
         moved = [T_ba @ T_map_camera for _, T_ba in copies]
         if len(moved):
             # The view's pose in each copy, where the frame's points fit the map about as well as at the answer:
@@ -772,6 +775,27 @@ class Localizer:
             renders[id(outcome)] = rendered[k]
             out.append((float(score[k]), outcome, Candidate(T_k, float(score[k]), h, carried, rendered[k]), 0.0))
         return out
+
+    def _shows_objects(self, scan: Scan, T_map_camera: np.ndarray, poses: list[np.ndarray]) -> np.ndarray:
+        """(len(poses),) bool: whether each pose (a copy of T_map_camera in a room that repeats its room) has the
+        frame's large objects where it places them: each labelled object of the frame holding at least
+        RegionConfig.object_tiebreak_share of its points that has a map node of its class within match_radius_m
+        at T_map_camera must have one at the pose too. A copy that lacks such an object (a building's copies each
+        miss some furniture) shows the frame differently by at least that share of the view, more than the
+        repeated-view oracle's 3 % of the pixels: it repeats no view of it and shows it no better, and is not
+        rendered (at 100 rooms, most of the twin check's 99 copies a frame)."""
+        radius, share = self.config.match.match_radius_m, self.config.regions.object_tiebreak_share
+        keep = np.ones(len(poses), dtype=bool)
+        P = np.asarray(poses)
+        for c in scan.clusters:
+            if len(c.index) < share * len(scan.down):
+                continue
+            here = transform_points(T_map_camera, c.centroid[None])
+            if self.graph.nearest_of_class(here, c.cls, radius)[0] < 0:
+                continue  # no node of its class where the answer puts it: it tells the copies nothing
+            there = np.einsum("pij,j->pi", P[:, :3, :3], c.centroid) + P[:, :3, 3]
+            keep &= self.graph.nearest_of_class(there, c.cls, radius) >= 0
+        return keep
 
     def _roi_region(self, T_map_camera: np.ndarray, center_camera: np.ndarray) -> int:
         """Index of the region holding the centre of a pose's region of interest (what `maps_at` builds)."""
