@@ -72,6 +72,17 @@ def lookup(grid, scale, origin, voxel, hi, strides, x, y, z, out):
             out[first + j] = grid[cells[j]] * scale
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _pose_cells(origin, voxel, hi, strides, points, r, s, cells):
+    """cells[i] = the flat cell of r · points[i] + s."""
+    for i in range(len(points)):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        cells[i] = _cell(origin, voxel, hi, strides,
+                         r[0, 0] * px + r[0, 1] * py + r[0, 2] * pz + s[0],
+                         r[1, 0] * px + r[1, 1] * py + r[1, 2] * pz + s[1],
+                         r[2, 0] * px + r[2, 1] * py + r[2, 2] * pz + s[2])
+
+
 @njit(cache=True, nogil=True)
 def score_poses(grid, scale, origin, voxel, hi, strides, points, R, t, tau, out):
     """out[h] = mean over the points of max(0, 1 - (d / tau)²), d the field's distance at R[h] · p + t[h].
@@ -79,21 +90,37 @@ def score_poses(grid, scale, origin, voxel, hi, strides, points, R, t, tau, out)
     m = len(points)
     cells = np.empty(m, dtype=np.int64)
     for h in range(len(R)):
-        r, s = R[h], t[h]
         # The cells first, then the reads: independent reads of a large grid overlap in the memory system, reads
         # interleaved with the arithmetic of the next cell do not (one loop was slower than numpy's passes).
-        for i in range(m):
-            px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-            cells[i] = _cell(origin, voxel, hi, strides,
-                             r[0, 0] * px + r[0, 1] * py + r[0, 2] * pz + s[0],
-                             r[1, 0] * px + r[1, 1] * py + r[1, 2] * pz + s[1],
-                             r[2, 0] * px + r[2, 1] * py + r[2, 2] * pz + s[2])
+        _pose_cells(origin, voxel, hi, strides, points, R[h], t[h], cells)
         total = 0.0
         for i in range(m):
             d = grid[cells[i]] * scale / tau
             if d < 1.0:
                 total += 1.0 - d * d
         out[h] = total / max(m, 1)
+
+
+@njit(cache=True, nogil=True)
+def score_poses_quantized(grid, scale, origin, voxel, hi, strides, points, R, t, scores, out):
+    """`score_poses` of a quantized (uint8) grid: scores[g] is the score of a cell holding g (`quantized_scores`),
+    one read of a 256-entry table a point for a product, a division and a branch; the same sums, bit for bit
+    (a building's frame scores 50-250 k poses: a fifth less time)."""
+    m = len(points)
+    cells = np.empty(m, dtype=np.int64)
+    for h in range(len(R)):
+        _pose_cells(origin, voxel, hi, strides, points, R[h], t[h], cells)
+        total = 0.0
+        for i in range(m):
+            total += scores[grid[cells[i]]]
+        out[h] = total / max(m, 1)
+
+
+def quantized_scores(scale: float, tau: float) -> np.ndarray:
+    """(256,) float64: the score `score_poses` gives a cell holding g, for each g of a uint8 grid of steps of
+    `scale` metres (computed as the loop computes it: (g · scale) / tau, then 1 − d² below 1, else 0)."""
+    d = np.arange(256, dtype=np.float64) * float(scale) / float(tau)
+    return np.where(d < 1.0, 1.0 - d * d, 0.0)
 
 
 @njit(cache=True, nogil=True)
@@ -248,6 +275,8 @@ def warm() -> None:
         lookup(*args, one, one, one, np.empty(1, dtype=np.float32))
         R, t, p = np.eye(3)[None], np.zeros((1, 3)), np.zeros((1, 3))
         score_poses(*args, p, R, t, 0.1, np.empty(1))
+        if grid.dtype == np.uint8:
+            score_poses_quantized(*args, p, R, t, quantized_scores(1.0, 0.1), np.empty(1))
         trace(*args, R, t, np.zeros(3), np.array([[0.0, 0.0, 1.0]]), 0.5, 1.0, 0.1, 0.1, 4, 0.0, np.empty((1, 1)))
         sums_at(args[0], np.zeros((1, 1), dtype=np.int64), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
                 np.empty(1, dtype=np.int64))

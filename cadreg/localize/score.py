@@ -7,6 +7,8 @@ hypotheses per frame stay cheap. scipy's exact Euclidean distance transform does
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 from scipy.ndimage import distance_transform_edt, minimum_filter
 
@@ -171,9 +173,20 @@ def score_poses(field: DistanceField, points_camera: np.ndarray, R_map_camera: n
     Returns (h,) float64 soft inlier fractions.
     """
     out = np.empty(len(R_map_camera))
-    field_kernels.score_poses(*field.kernel_args(), field_kernels.floats(points_camera),
-                              field_kernels.floats(R_map_camera), field_kernels.floats(t_map_camera), float(tau_m), out)
+    args = (*field.kernel_args(), field_kernels.floats(points_camera), field_kernels.floats(R_map_camera),
+            field_kernels.floats(t_map_camera))
+    if field.step_m is None:
+        field_kernels.score_poses(*args, float(tau_m), out)
+    else:
+        field_kernels.score_poses_quantized(*args, _quantized_scores(field.step_m, float(tau_m)), out)
     return out
+
+
+@lru_cache(maxsize=16)
+def _quantized_scores(step_m: float, tau_m: float) -> np.ndarray:
+    """`field_kernels.quantized_scores`, made once per (step, tau): a site has one step and a few taus. (Writable,
+    as `field_kernels.warm` compiles for: a read-only table is another type to numba.)"""
+    return field_kernels.quantized_scores(step_m, tau_m)
 
 
 class ViewCheck:
