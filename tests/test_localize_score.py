@@ -71,6 +71,29 @@ def test_score_poses_scores_each_pose_like_one_lookup() -> None:
     assert scores[0] > 0.9 and scores[2] == 0.0
 
 
+def test_a_stored_field_scores_poses_from_its_table_as_the_formula_does() -> None:
+    """A building's quantized field is scored through a table of its 256 values (`score_poses_quantized`): the
+    same scores, bit for bit, as the formula per read, for each tau."""
+    from scipy.spatial.transform import Rotation
+
+    from cadreg.localize import field_kernels
+
+    rng = np.random.default_rng(2)
+    room = rng.uniform([0, 0, 0], [2, 1.5, 1], size=(4000, 3))
+    field = DistanceField.from_grid(building_field([room]))
+    assert field.step_m is not None
+    pts = room[rng.choice(len(room), 200)] + rng.normal(0, 0.05, (200, 3))
+    R = Rotation.from_rotvec(rng.normal(0, 0.05, (50, 3))).as_matrix()
+    t = rng.normal(0, 0.1, (50, 3))
+    for tau in (0.05, 0.1, 0.15):
+        by_formula = np.empty(len(R))
+        field_kernels.score_poses(*field.kernel_args(), pts, R, t, tau, by_formula)
+        scores = score_poses(field, pts, R, t, tau_m=tau)
+        assert np.array_equal(scores, by_formula)
+        assert 0.0 < scores.min() and scores.max() <= 1.0
+        assert scores[0] == pytest.approx(inlier_score(field.lookup(pts @ R[0].T + t[0]), tau), abs=1e-6)
+
+
 def test_see_through_counts_map_in_front_of_the_depth_but_not_a_silhouette() -> None:
     """`ViewCheck.see_through`: map points in front of the measured depth count, except on the far side of a
     depth edge, where a point on the near surface's rim lands a cell past it as often as not (a building's low
