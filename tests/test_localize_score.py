@@ -72,8 +72,8 @@ def test_score_poses_scores_each_pose_like_one_lookup() -> None:
 
 
 def test_a_stored_field_scores_poses_from_its_table_as_the_formula_does() -> None:
-    """A building's quantized field is scored through a table of its 256 values (`score_poses_quantized`): the
-    same scores, bit for bit, as the formula per read, for each tau."""
+    """A building's quantized field is scored through a table of its 256 values (`field_kernels.score_poses` with
+    a table): the same scores, bit for bit, as the formula per read, for each tau."""
     from scipy.spatial.transform import Rotation
 
     from cadreg.localize import field_kernels
@@ -87,7 +87,7 @@ def test_a_stored_field_scores_poses_from_its_table_as_the_formula_does() -> Non
     t = rng.normal(0, 0.1, (50, 3))
     for tau in (0.05, 0.1, 0.15):
         by_formula = np.empty(len(R))
-        field_kernels.score_poses(*field.kernel_args(), pts, R, t, tau, by_formula)
+        field_kernels.score_poses(*field.kernel_args(), pts, R, t, tau, field_kernels.NO_TABLE, by_formula)
         scores = score_poses(field, pts, R, t, tau_m=tau)
         assert np.array_equal(scores, by_formula)
         assert 0.0 < scores.min() and scores.max() <= 1.0

@@ -25,6 +25,8 @@ from numba import njit
 # enough for the batch's state to stay in the first-level cache.
 TRACE_BATCH = 256
 LOOKUP_BATCH = 1024
+# `score_poses` of a grid without a table of its values' scores (a float grid).
+NO_TABLE = np.zeros(0)
 
 
 def floats(a: np.ndarray) -> np.ndarray:
@@ -84,35 +86,26 @@ def _pose_cells(origin, voxel, hi, strides, points, r, s, cells):
 
 
 @njit(cache=True, nogil=True)
-def score_poses(grid, scale, origin, voxel, hi, strides, points, R, t, tau, out):
+def score_poses(grid, scale, origin, voxel, hi, strides, points, R, t, tau, table, out):
     """out[h] = mean over the points of max(0, 1 - (d / tau)²), d the field's distance at R[h] · p + t[h].
-    points : (m, 3) camera frame; R : (h, 3, 3); t : (h, 3)."""
+    points : (m, 3) camera frame; R : (h, 3, 3); t : (h, 3). table : for a quantized (uint8) grid, (256,) the score
+    of a cell holding each value (`quantized_scores`: the same sums, bit for bit, for a read of the table instead of
+    a product, a division and a branch a point; a building's frame scores 50-250 k poses), else empty."""
     m = len(points)
     cells = np.empty(m, dtype=np.int64)
+    by_table = len(table) > 0
     for h in range(len(R)):
         # The cells first, then the reads: independent reads of a large grid overlap in the memory system, reads
         # interleaved with the arithmetic of the next cell do not (one loop was slower than numpy's passes).
         _pose_cells(origin, voxel, hi, strides, points, R[h], t[h], cells)
         total = 0.0
         for i in range(m):
+            if by_table:  # (the cast: numba types this branch for a float grid too, which never takes it)
+                total += table[np.int64(grid[cells[i]])]
+                continue
             d = grid[cells[i]] * scale / tau
             if d < 1.0:
                 total += 1.0 - d * d
-        out[h] = total / max(m, 1)
-
-
-@njit(cache=True, nogil=True)
-def score_poses_quantized(grid, scale, origin, voxel, hi, strides, points, R, t, scores, out):
-    """`score_poses` of a quantized (uint8) grid: scores[g] is the score of a cell holding g (`quantized_scores`),
-    one read of a 256-entry table a point for a product, a division and a branch; the same sums, bit for bit
-    (a building's frame scores 50-250 k poses: a fifth less time)."""
-    m = len(points)
-    cells = np.empty(m, dtype=np.int64)
-    for h in range(len(R)):
-        _pose_cells(origin, voxel, hi, strides, points, R[h], t[h], cells)
-        total = 0.0
-        for i in range(m):
-            total += scores[grid[cells[i]]]
         out[h] = total / max(m, 1)
 
 
@@ -274,9 +267,9 @@ def warm() -> None:
         one = np.zeros(1)
         lookup(*args, one, one, one, np.empty(1, dtype=np.float32))
         R, t, p = np.eye(3)[None], np.zeros((1, 3)), np.zeros((1, 3))
-        score_poses(*args, p, R, t, 0.1, np.empty(1))
+        score_poses(*args, p, R, t, 0.1, NO_TABLE, np.empty(1))
         if grid.dtype == np.uint8:
-            score_poses_quantized(*args, p, R, t, quantized_scores(1.0, 0.1), np.empty(1))
+            score_poses(*args, p, R, t, 0.1, quantized_scores(1.0, 0.1), np.empty(1))
         trace(*args, R, t, np.zeros(3), np.array([[0.0, 0.0, 1.0]]), 0.5, 1.0, 0.1, 0.1, 4, 0.0, np.empty((1, 1)))
         sums_at(args[0], np.zeros((1, 1), dtype=np.int64), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
                 np.empty(1, dtype=np.int64))

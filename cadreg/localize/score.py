@@ -173,12 +173,10 @@ def score_poses(field: DistanceField, points_camera: np.ndarray, R_map_camera: n
     Returns (h,) float64 soft inlier fractions.
     """
     out = np.empty(len(R_map_camera))
-    args = (*field.kernel_args(), field_kernels.floats(points_camera), field_kernels.floats(R_map_camera),
-            field_kernels.floats(t_map_camera))
-    if field.step_m is None:
-        field_kernels.score_poses(*args, float(tau_m), out)
-    else:
-        field_kernels.score_poses_quantized(*args, _quantized_scores(field.step_m, float(tau_m)), out)
+    table = field_kernels.NO_TABLE if field.step_m is None else _quantized_scores(field.step_m, float(tau_m))
+    field_kernels.score_poses(*field.kernel_args(), field_kernels.floats(points_camera),
+                              field_kernels.floats(R_map_camera), field_kernels.floats(t_map_camera), float(tau_m),
+                              table, out)
     return out
 
 
