@@ -713,13 +713,11 @@ class Localizer:
         a = self._roi_region(T_map_camera, center_camera)
         copies = [(b, T_ba) for b, T_ba in self.twins.of(a)
                   if scan.search is None or scan.search.allows((T_ba @ T_map_camera)[None, :3, 3], self.maps.regions)[0]]
-        apart = self._distinct_from_all([T_ba @ T_map_camera for _, T_ba in copies],
-                                        [c.T_map_camera for c in candidates[:refined]])
-        copies = [copy for copy, keep in zip(copies, apart) if keep]
-        if copies and scan.clusters:
-            shows = self._shows_objects(scan, T_map_camera, [T_ba @ T_map_camera for _, T_ba in copies])
-            copies = [copy for copy, keep in zip(copies, shows) if keep]
         moved = [T_ba @ T_map_camera for _, T_ba in copies]
+        keep = self._distinct_from_all(moved, [c.T_map_camera for c in candidates[:refined]])
+        if moved and scan.clusters:
+            keep &= self._shows_objects(scan, T_map_camera, moved)
+        copies, moved = [c for c, k in zip(copies, keep) if k], [T for T, k in zip(moved, keep) if k]
         if len(moved):
             # The view's pose in each copy, where the frame's points fit the map about as well as at the answer:
             # a cheap screen on the field before the alignment and the render (a 100-room building has 99 copies).
@@ -779,23 +777,15 @@ class Localizer:
     def _shows_objects(self, scan: Scan, T_map_camera: np.ndarray, poses: list[np.ndarray]) -> np.ndarray:
         """(len(poses),) bool: whether each pose (a copy of T_map_camera in a room that repeats its room) has the
         frame's large objects where it places them: each labelled object of the frame holding at least
-        RegionConfig.object_tiebreak_share of its points that has a map node of its class within match_radius_m
-        at T_map_camera must have one at the pose too. A copy that lacks such an object (a building's copies each
-        miss some furniture) shows the frame differently by at least that share of the view, more than the
-        repeated-view oracle's 3 % of the pixels: it repeats no view of it and shows it no better, and is not
-        rendered (at 100 rooms, most of the twin check's 99 copies a frame)."""
-        radius, share = self.config.match.match_radius_m, self.config.regions.object_tiebreak_share
-        keep = np.ones(len(poses), dtype=bool)
-        P = np.asarray(poses)
-        for c in scan.clusters:
-            if len(c.index) < share * len(scan.down):
-                continue
-            here = transform_points(T_map_camera, c.centroid[None])
-            if self.graph.nearest_of_class(here, c.cls, radius)[0] < 0:
-                continue  # no node of its class where the answer puts it: it tells the copies nothing
-            there = np.einsum("pij,j->pi", P[:, :3, :3], c.centroid) + P[:, :3, 3]
-            keep &= self.graph.nearest_of_class(there, c.cls, radius) >= 0
-        return keep
+        RegionConfig.object_tiebreak_share of its points that T_map_camera places (`_objects_placed`) must be placed
+        by the pose too. A copy that lacks such an object (a building's copies each miss some furniture) shows the
+        frame differently by at least that share of the view, more than the repeated-view oracle's 3 % of the
+        pixels: it repeats no view of it and shows it no better, and is not rendered (at 100 rooms, most of the
+        twin check's 99 copies a frame)."""
+        share = self.config.regions.object_tiebreak_share
+        large = np.array([len(c.index) >= share * len(scan.down) for c in scan.clusters], dtype=bool)
+        pins = large & self._objects_placed(scan, T_map_camera)[0]
+        return self._objects_placed(scan, np.asarray(poses))[:, pins].all(axis=1)
 
     def _roi_region(self, T_map_camera: np.ndarray, center_camera: np.ndarray) -> int:
         """Index of the region holding the centre of a pose's region of interest (what `maps_at` builds)."""
@@ -875,12 +865,23 @@ class Localizer:
                 | (scan.view.agreement(rendered, mine) >= self.config.regions.twin_agreement))
 
     def _objects_explained(self, scan: Scan, T_map_camera: np.ndarray) -> float:
-        """The share of the frame's points (`Scan.down`) in labelled objects that have a map node of their class
-        within match_radius_m of where the pose places their centroid."""
-        xyz = transform_points(T_map_camera, np.array([c.centroid for c in scan.clusters]))
+        """The share of the frame's points (`Scan.down`) in labelled objects the pose places (`_objects_placed`)."""
+        placed = self._objects_placed(scan, T_map_camera)[0]
+        return sum(len(c.index) for c, p in zip(scan.clusters, placed) if p) / max(len(scan.down), 1)
+
+    def _objects_placed(self, scan: Scan, poses: np.ndarray) -> np.ndarray:
+        """(p, objects) bool: whether each pose (poses (p, 4, 4) or (4, 4)) puts each of the frame's labelled
+        objects (`Scan.clusters`) with its centroid within match_radius_m of a map node of its class."""
+        P = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+        placed = np.zeros((len(P), len(scan.clusters)), dtype=bool)
+        if not len(scan.clusters):
+            return placed
+        centroids = np.array([c.centroid for c in scan.clusters])
+        xyz = centroids @ P[:, :3, :3].transpose(0, 2, 1) + P[:, None, :3, 3]  # (p, objects, 3), as transform_points
         radius = self.config.match.match_radius_m
-        return sum(len(c.index) for k, c in enumerate(scan.clusters)
-                   if self.graph.nearest_of_class(xyz[k:k + 1], c.cls, radius)[0] >= 0) / max(len(scan.down), 1)
+        for k, c in enumerate(scan.clusters):
+            placed[:, k] = self.graph.nearest_of_class(xyz[:, k], c.cls, radius) >= 0
+        return placed
 
     def _view_rivals(self, refined: list, renders: dict[int, np.ndarray], candidates: list[Candidate],
                      scan: Scan) -> tuple[bool, float, list[Candidate]]:
