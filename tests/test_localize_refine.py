@@ -12,7 +12,7 @@ from cadreg.camera import CameraIntrinsics
 from cadreg.geometry import make_T, pose_errors, transform_points
 from cadreg.localize.color_gicp import ColorGicpTarget, color_gicp, plane_covariances, prepare_cloud, rgb_to_lab
 from cadreg.localize.grid_gicp import PLANE_EPS, MapNormals, _linearize, gicp, plane_covariance, plane_normals, se3_exp
-from cadreg.localize.points import frame_to_points
+from cadreg.localize.points import FramePoints, frame_to_points
 from cadreg.localize.refine import GRID_PAIRS_PER_MAP_POINT, RefineMap
 from cadreg.localize.synthetic import look_pose, make_scene, render_frame
 
@@ -202,3 +202,31 @@ def test_fitness_and_agreement(scene_and_frame) -> None:
     assert geo > 0.95 and col > 0.7
     wrong = rmap.agreement(transform_points(T, pts.xyz), rgb_to_lab(1.0 - pts.rgb), cls)
     assert wrong[2] < col - 0.3
+
+
+def test_frame_points_far_from_the_map_never_reach_small_gicps_search(scene_and_frame, monkeypatch) -> None:
+    """small_gicp's KD-tree visits most of the map for a point metres from it (230 ms a pass on a 3DMatch frame):
+    points beyond the passes' reach are left out, with the same result, and a start where none lies near the map
+    comes back unrefined."""
+    import cadreg.localize.refine as refine_module
+
+    _, frame, T, rmap = scene_and_frame
+    pts = frame_to_points(frame)
+    far = FramePoints(pts.xyz + np.array([0.0, 0.0, 20.0]), pts.rgb, pts.labels)  # 20 m on: behind every wall
+    both = FramePoints(np.vstack([pts.xyz, far.xyz]), np.vstack([pts.rgb, far.rgb]),
+                       np.concatenate([pts.labels, far.labels]))
+    sources: list[int] = []
+    align = refine_module.small_gicp.align
+    monkeypatch.setattr(refine_module.small_gicp, "align",
+                        lambda target, source, *a, **k: sources.append(source.size()) or align(target, source, *a, **k))
+    T0 = _perturbed(T, seed=1, t_m=0.05, r_deg=2.0)
+    alone = rmap.refine(pts, T0, method="small_gicp")
+    sources_alone = list(sources)
+    with_far = rmap.refine(both, T0, method="small_gicp")
+    assert sources[len(sources_alone):] == sources_alone  # the far copies were not handed over
+    np.testing.assert_allclose(with_far.T_map_camera, alone.T_map_camera, atol=1e-9)
+    assert with_far.iterations == alone.iterations
+    lost = rmap.refine(far, T0, method="small_gicp")
+    assert len(sources) == 2 * len(sources_alone)  # no GICP ran
+    assert lost.iterations == 0 and not lost.converged and lost.covariance is None
+    np.testing.assert_array_equal(lost.T_map_camera, T0)
