@@ -76,3 +76,41 @@ def test_an_fpfh_pose_that_turns_the_camera_over_is_refused(scene, monkeypatch) 
     r = loc.localize(frame)
     assert not any("refused" in n for n in r.diagnostics.notes)
     assert any(h.source == "fallback:fpfh-ransac" for h in r.hypotheses)
+
+
+def test_a_coarse_gicp_far_off_the_map_pairs_only_the_points_near_it(scene, monkeypatch) -> None:
+    """small_gicp's KD-tree visits most of the map for each point far from it: a hypothesis with most of its
+    points beyond the field's truncation aligns the others, with the result of aligning them alone; one with
+    none near the map stays where it is."""
+    from types import SimpleNamespace
+
+    import small_gicp
+
+    import cadreg.localize.refine as refine_module
+    from cadreg.localize import Localizer
+
+    loc = Localizer.from_site(scene.site)
+    T = look_pose(np.array([3.1, 2.2, 1.45]), np.radians(200.0), np.radians(30.0))
+    frame = render_frame(scene, T, intrinsics=CameraIntrinsics(160, 120, 144.0, 144.0, 79.5, 59.5))
+    near = voxel_downsample(frame_to_points(frame), 0.08).xyz
+    far = near + np.array([0.0, 0.0, 30.0])  # 30 m on along the view: beyond every wall
+    sizes: list[int] = []
+    align = refine_module.small_gicp.align
+    monkeypatch.setattr(refine_module.small_gicp, "align",
+                        lambda target, source, *a, **k: sizes.append(source.size()) or align(target, source, *a, **k))
+
+    def cloud(xyz: np.ndarray) -> small_gicp.PointCloud:
+        pc = small_gicp.PointCloud(xyz)
+        small_gicp.estimate_covariances(pc, num_neighbors=10)
+        return pc
+
+    scan = SimpleNamespace(center_camera=near.mean(axis=0))
+    T0 = make_T(np.eye(3), np.array([0.05, -0.04, 0.02])) @ T
+    both = np.vstack([near, far])
+    moved = loc._coarse_align(cloud(both), both, T0, scan)
+    assert sizes == [len(near)]
+    alone = loc.refine_map.coarse_align(cloud(near), T0)
+    np.testing.assert_allclose(moved, alone, atol=1e-9)
+    assert pose_errors(moved, T)[0] < 0.02
+    np.testing.assert_array_equal(loc._coarse_align(cloud(far), far, T0, scan), T0)
+    assert len(sizes) == 2  # no GICP for the pose with nothing near the map
