@@ -1267,13 +1267,19 @@ class Localizer:
         KD-tree visits most of the map for each far point (a 3DMatch frame's hypotheses on a one-frame map, 60 %
         of their points over 0.5 m off, took 10 ms each instead of 3). A pose with nothing near the map stays."""
         refine_map = self.maps_at(T_map_camera, scan.center_camera).refine_map
-        far = self.field.lookup(xyz @ T_map_camera[:3, :3].T + T_map_camera[:3, 3]) >= self.field.truncate_m
+        far = ~self.near_map(xyz, T_map_camera)
         if far.mean() > COARSE_FAR_SHARE:
             if (~far).sum() <= GICP_NEIGHBORS:
                 return T_map_camera
             source = small_gicp.PointCloud(xyz[~far])
             small_gicp.estimate_covariances(source, num_neighbors=GICP_NEIGHBORS)
         return refine_map.coarse_align(source, T_map_camera)
+
+    def near_map(self, xyz_camera: np.ndarray, T_map_camera: np.ndarray) -> np.ndarray:
+        """(n,) bool: which points (camera frame) T_map_camera puts within the distance field's truncation of the
+        map (0.5 m). A lookup a point: what keeps points no GICP could pair away from small_gicp's unbounded
+        nearest-neighbour search, which visits most of the map for each (the coarse GICP, tracking)."""
+        return self.field.lookup(transform_points(T_map_camera, xyz_camera)) < self.field.truncate_m
 
     def _candidate(self, hyp: Hypotheses, i: int, T: np.ndarray, score: float, origin: str,
                    rendered: np.ndarray | None = None) -> Candidate:

@@ -254,8 +254,7 @@ def _near_the_map(localizer: "Localizer", xyz: np.ndarray, predicted: np.ndarray
     (0.5 m) of the map. Farther ones cannot pair with a map point within the correspondence distances (0.1, 0.2 m)
     at any accepted correction, but small_gicp's nearest-neighbour search has no distance bound, and a frame that
     looks past the map's edge spent 25-40 ms of ICP on them. Read in the field: a lookup a point."""
-    field = localizer.field
-    near = field.lookup(transform_points(predicted, xyz)) < field.truncate_m
+    near = localizer.near_map(xyz, predicted)
     # too few left to register: the frame as it is (it will not track, and the fitness will say so)
     return xyz[near] if np.count_nonzero(near) >= MIN_ROI_POINTS else xyz
 
