@@ -338,7 +338,7 @@ class RegionConfig(_Section):
                                   "many rooms, and at 1200 the search cut its way past the view's room")
     object_tiebreak_share: float = Field(0.05, gt=0, le=1, description="poses that look the same along the frame's "
                                          "rays are told apart by the frame's labelled objects when one explains this "
-                                         "share of the frame's points more than every other "
+                                         "share of the frame's view (pixels) more than every other "
                                          "(`Localizer._told_by_objects`); and a copy of the answer's room that lacks "
                                          "an object holding this share is no twin of the view (`_shows_objects`)")
     halo_m: float = Field(3.0, ge=0, description="a region's refinement map also holds its neighbours' points this "

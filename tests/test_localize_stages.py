@@ -137,3 +137,26 @@ def test_top_k_default_and_request_checks(scene) -> None:
         loc.localize(frame, method="nope")
     with pytest.raises(InvalidFrame):
         loc.localize("not a frame")  # type: ignore[arg-type]
+
+
+def test_an_objects_share_of_the_view_counts_pixels_not_voxel_points() -> None:
+    """Two square patches that cover the same pixels, one 0.5 m wide at 1 m and one 1.5 m wide at 3 m: the voxel
+    grid keeps nine times the points of the far one, the view shows both alike."""
+    from cadreg.localize.cluster import ScanCluster
+    from cadreg.localize.points import FramePoints
+    from cadreg.localize.stages import Scan
+
+    def patch(width_m: float, depth_m: float) -> np.ndarray:
+        g = np.arange(-width_m / 2, width_m / 2, 0.02)
+        x, y = np.meshgrid(g, g)
+        return np.stack([x.ravel(), y.ravel(), np.full(x.size, depth_m)], axis=1)
+
+    near, far = patch(0.5, 1.0), patch(1.5, 3.0)
+    xyz = np.vstack([near, far])
+    down = FramePoints(xyz, np.zeros_like(xyz), np.full(len(xyz), -1))
+    index = [np.arange(len(near)), len(near) + np.arange(len(far))]
+    clusters = [ScanCluster(0, xyz[i].mean(axis=0), xyz[i].mean(axis=0), np.ptp(xyz[i], axis=0), i) for i in index]
+    scan = Scan(down, down, np.zeros(len(xyz), dtype=np.int64), clusters, None, score_xyz=xyz, fit_xyz=xyz,
+                fit_lab=np.zeros_like(xyz), fit_cls=np.zeros(len(xyz), dtype=np.int64), check_xyz=xyz)
+    assert len(far) > 8 * len(near)
+    np.testing.assert_allclose(scan.view_shares, [0.5, 0.5], atol=0.01)

@@ -780,13 +780,12 @@ class Localizer:
     def _shows_objects(self, scan: Scan, T_map_camera: np.ndarray, poses: list[np.ndarray]) -> np.ndarray:
         """(len(poses),) bool: whether each pose (a copy of T_map_camera in a room that repeats its room) has the
         frame's large objects where it places them: each labelled object of the frame holding at least
-        RegionConfig.object_tiebreak_share of its points that T_map_camera places (`_objects_placed`) must be placed
+        RegionConfig.object_tiebreak_share of its view (`Scan.view_shares`) that T_map_camera places (`_objects_placed`) must be placed
         by the pose too. A copy that lacks such an object (a building's copies each miss some furniture) shows the
         frame differently by at least that share of the view, more than the repeated-view oracle's 3 % of the
         pixels: it repeats no view of it and shows it no better, and is not rendered (at 100 rooms, most of the
         twin check's 99 copies a frame)."""
-        share = self.config.regions.object_tiebreak_share
-        large = np.array([len(c.index) >= share * len(scan.down) for c in scan.clusters], dtype=bool)
+        large = scan.view_shares >= self.config.regions.object_tiebreak_share
         pins = large & self._objects_placed(scan, T_map_camera)[0]
         return self._objects_placed(scan, np.asarray(poses))[:, pins].all(axis=1)
 
@@ -809,7 +808,7 @@ class Localizer:
     def _told_by_objects(self, scan: Scan, refined: list, rivals: list[Candidate], refine, candidates: list[Candidate],
                          diag: Diagnostics) -> bool:
         """In a building, when distinct poses look the same along the frame's rays: whether the frame's labelled
-        objects tell one of them from the rest. Each pose is credited with the frame's points in objects that have
+        objects tell one of them from the rest. Each pose is credited with the frame's view in objects that have
         a map node of their class within match_radius_m where it places them (`_objects_explained`); when one pose
         explains clearly more than every other, it is the answer (refined first, and put first in `refined`, when
         it was a rival).
@@ -818,7 +817,7 @@ class Localizer:
         shows a chair, its label does: in the 100-room building, a labelled unique view was answered in a copy
         (the view agreement tied among 61 rooms) where the true room's pose alone explained all three of the
         frame's objects (8 % of its points more than any copy). A pose must explain
-        RegionConfig.object_tiebreak_share more of the frame's points than every other: the repeated-view oracle
+        RegionConfig.object_tiebreak_share more of the frame's view than every other: the repeated-view oracle
         calls views that differ by less than about one small object (3 % of the pixels) the same, and a sliver of
         a chair at the frame's border, or a partly seen table whose centroid lands 0.6 m from its node, told
         copies apart by 0.3-4 % (one of them wrongly)."""
@@ -837,7 +836,7 @@ class Localizer:
                 refined.remove(promoted)
             refined.insert(0, promoted)
             self._report_refined(refined, candidates)
-        diag.notes.append(f"the frame's objects: {100 * explained[k]:.1f} % of its points lie in objects whose map "
+        diag.notes.append(f"the frame's objects: {100 * explained[k]:.1f} % of its view lies in objects whose map "
                           f"node is where the answer places them, at most {100 * second:.1f} % at the "
                           f"{len(poses) - 1} other poses that look the same")
         return True
@@ -868,9 +867,9 @@ class Localizer:
                 | (scan.view.agreement(rendered, mine) >= self.config.regions.twin_agreement))
 
     def _objects_explained(self, scan: Scan, T_map_camera: np.ndarray) -> float:
-        """The share of the frame's points (`Scan.down`) in labelled objects the pose places (`_objects_placed`)."""
-        placed = self._objects_placed(scan, T_map_camera)[0]
-        return sum(len(c.index) for c, p in zip(scan.clusters, placed) if p) / max(len(scan.down), 1)
+        """The share of the frame's view (`Scan.view_shares`) in labelled objects the pose places
+        (`_objects_placed`)."""
+        return float(scan.view_shares[self._objects_placed(scan, T_map_camera)[0]].sum())
 
     def _objects_placed(self, scan: Scan, poses: np.ndarray) -> np.ndarray:
         """(p, objects) bool: whether each pose (poses (p, 4, 4) or (4, 4)) puts each of the frame's labelled

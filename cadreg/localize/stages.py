@@ -13,6 +13,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -68,6 +69,17 @@ class Scan:
     search: SearchRegion | None = None  # the client's search region (Frame.search_region)
     unverified: list[Hypothesis] = field(default_factory=list)  # tied rooms beyond RegionConfig.max_verified
     view: FieldView | None = None
+
+    @cached_property
+    def view_shares(self) -> np.ndarray:
+        """(len(clusters),) the share of the frame's view (pixels) each labelled object covers, from its voxel
+        points (`down`): each stands for the pixels its voxel covers, about 1/z² at depth z. The repeated-view
+        oracle and the view agreement count pixels; the voxel grid keeps far surfaces' points (a door in the next
+        room, seen through a gap, held 13 % of a frame's voxel points and 3 % of its pixels)."""
+        if not self.clusters:
+            return np.zeros(0)
+        weight = 1.0 / np.maximum(self.down.xyz[:, 2], 1e-3) ** 2
+        return np.array([weight[c.index].sum() for c in self.clusters]) / weight.sum()
 
 
 @dataclass
