@@ -779,9 +779,9 @@ class Localizer:
 
     def _shows_objects(self, scan: Scan, T_map_camera: np.ndarray, poses: list[np.ndarray]) -> np.ndarray:
         """(len(poses),) bool: whether each pose (a copy of T_map_camera in a room that repeats its room) has the
-        frame's large objects where it places them: each labelled object of the frame holding at least
-        RegionConfig.object_tiebreak_share of its view (`Scan.view_shares`) that T_map_camera places (`_objects_placed`) must be placed
-        by the pose too. A copy that lacks such an object (a building's copies each miss some furniture) shows the
+        frame's large objects where it places them: each labelled object of the frame covering at least
+        RegionConfig.object_tiebreak_share of its view (`Scan.view_shares`) that T_map_camera places
+        (`_objects_placed`) must be placed by the pose too. A copy that lacks such an object (a building's copies each miss some furniture) shows the
         frame differently by at least that share of the view, more than the repeated-view oracle's 3 % of the
         pixels: it repeats no view of it and shows it no better, and is not rendered (at 100 rooms, most of the
         twin check's 99 copies a frame)."""
