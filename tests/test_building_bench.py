@@ -129,20 +129,25 @@ def _three_rooms_layout(bundle: str):
 
 @pytest.mark.realdata
 def test_building_mesh_drops_the_faces_of_dropped_objects(scene_mesh, scene_nodes) -> None:
-    from cadreg.render.building import building_mesh, building_rooms, inside_boxes
-    from cadreg.site.compose import DROP_MARGIN_M
+    from cadreg.render.building import building_mesh, building_rooms
+    from cadreg.site.compose import inside_boxes
 
     rooms = building_rooms(_three_rooms_layout("r"), {"r": scene_mesh}, {"r": scene_nodes})
     assert rooms[0].mesh is scene_mesh and rooms[1].mesh is scene_mesh
     c = rooms[2].mesh
     dropped = [n for n in scene_nodes if n.id in ("cad-4", "cad-0")]
-    gone = inside_boxes(scene_mesh.vertices, dropped, DROP_MARGIN_M)
+    inside = inside_boxes(scene_mesh.vertices, dropped)
+    chair, bin_ = (next(n for n in dropped if n.id == i) for i in ("cad-4", "cad-0"))
+    assert (chair.cls, bin_.cls) == ("chair", "otherfurniture")
+    gone = (inside_boxes(scene_mesh.vertices, [chair]) & (scene_mesh.labels == 5)) | (
+        inside_boxes(scene_mesh.vertices, [bin_]) & (scene_mesh.labels == 39))  # NYU40 chair, otherfurniture
     assert gone.sum() > 200
-    assert not np.any(gone[c.faces])  # no face left touching the dropped boxes
+    assert not np.any(gone[c.faces])  # no face of the dropped objects is left
     removed = len(scene_mesh.faces) - len(c.faces)
     assert removed == int(np.any(gone[scene_mesh.faces], axis=1).sum()) > 500
-    chair_labels = scene_mesh.labels[np.unique(scene_mesh.faces[np.any(gone[scene_mesh.faces], axis=1)])]
-    assert np.mean(chair_labels == 5) > 0.3  # mostly the chair's own faces (the rest: floor and wall within 3 cm)
+    # the floor under them, the wall behind the bin and the door beside it stay: a room without them shows those
+    kept = np.all((inside & ~gone)[c.faces], axis=1)
+    assert kept.sum() > 50 and {1, 2} <= set(np.unique(scene_mesh.labels[c.faces[kept]]))
     building = building_mesh(rooms)
     assert len(building.faces) == 3 * len(scene_mesh.faces) - removed
     nv = len(scene_mesh.vertices)
@@ -288,3 +293,27 @@ def test_a_room_without_labels_joins_a_labelled_building_as_unlabelled(scene_mes
     rooms[1] = replace(rooms[1], mesh=replace(scene_mesh, label_set="ade20k"))
     with pytest.raises(ConfigError, match="share a label set"):
         building_mesh(rooms)
+
+
+@pytest.mark.realdata
+def test_a_composed_room_without_an_object_keeps_the_floor_it_stood_on(twin_rooms_dir, scene0470_site_dir) -> None:
+    """Room "b" of the twin rooms lacks the chair cad-4 and the bin cad-0: inside their boxes it has no point of
+    their classes, and the floor and wall points there stay (room "a", the same room moved by ROOM_B_OFFSET_M,
+    has both)."""
+    from tracking_rooms import DROPPED, ROOM_B_OFFSET_M
+
+    from cadreg.site.bundle import Site
+    from cadreg.site.compose import inside_boxes
+
+    room, site = Site.load(scene0470_site_dir), Site.load(twin_rooms_dir)
+    nodes = [n for n in room.graph.nodes if n.id in DROPPED]
+    for cloud in (site.map, site.raw):
+        xyz = cloud.points.astype(np.float64)
+        for node in nodes:
+            k = site.classes.index(node.cls)
+            in_a = inside_boxes(xyz, [node])
+            in_b = inside_boxes(xyz - np.array([ROOM_B_OFFSET_M, 0.0, 0.0]), [node])
+            assert np.count_nonzero(in_a & (cloud.class_index == k)) > 20
+            assert not np.any(in_b & (cloud.class_index == k))
+            structure_a = np.count_nonzero(in_a & (cloud.class_index < 0))
+            assert structure_a > 20 and np.count_nonzero(in_b & (cloud.class_index < 0)) >= 0.8 * structure_a

@@ -2,8 +2,8 @@
 
 The building mesh is each room's labelled mesh copied into the building frame by its `T_building_room`, with the
 faces of the room's dropped objects removed: a face goes when one of its vertices lies inside a dropped node's
-oriented box grown by `compose.DROP_MARGIN_M` (the room bundle's node boxes, room frame; the rule compose applies
-to the map's points). Views are drawn as follows: a room uniformly (seeded), a camera pose in it by `PoseSampler`
+oriented box grown by `compose.DROP_MARGIN_M` (the room bundle's node boxes, room frame) and is of the node's class
+(the floor and the wall under and behind it stay); the rule compose applies to the map's points. Views are drawn as follows: a room uniformly (seeded), a camera pose in it by `PoseSampler`
 on the room's own mesh (room frame, the room's drops removed), then `T_building_camera = T_building_room ·
 T_room_camera` rendered on the whole building mesh (a neighbouring room can show over a low wall or through a gap)
 with the usual noise, and judged by RenderConfig's valid-depth and visible-object thresholds.
@@ -42,7 +42,8 @@ from ..config import NoiseConfig, RenderConfig
 from ..errors import ConfigError, InvalidFrame
 from ..geometry import transform_points
 from ..io.frames import FramesWriter
-from ..site.compose import DROP_MARGIN_M, Layout
+from ..labels import nyu40_label_map
+from ..site.compose import Layout, inside_boxes
 from ..site.graph import ObjectNode
 from .mesh import LabelledMesh
 from .poses import PoseSampler
@@ -65,21 +66,24 @@ class OracleConfig(BaseModel):
     min_agreement: float = Field(0.97, gt=0, le=1)
 
 
-def inside_boxes(xyz: np.ndarray, nodes: list[ObjectNode], margin_m: float = DROP_MARGIN_M) -> np.ndarray:
-    """(n,) bool: points (n, 3, room frame) inside any node's oriented box grown by `margin_m`."""
-    inside = np.zeros(len(xyz), dtype=bool)
-    for node in nodes:
-        local = (xyz - node.box_center) @ node.box_R
-        inside |= np.all(np.abs(local) <= node.box_extent / 2 + margin_m, axis=1)
-    return inside
-
-
 def room_copy_mesh(mesh: LabelledMesh, dropped: list[ObjectNode]) -> LabelledMesh:
-    """The room's mesh (room frame) without the faces that touch a dropped node's grown box; vertices are kept
-    (unreferenced ones are harmless), so labels and instances keep their indices."""
+    """The room's mesh (room frame) without the faces of its dropped objects: those touching a vertex of a dropped
+    node's class inside its box grown by `compose.DROP_MARGIN_M` (every vertex in the box for a mesh whose labels
+    name no classes). The floor and the wall the object stood on and against stay, as they would in a room without
+    it (cutting them out left a hole in the frames, no depth, that no sensor shows), and so do a door or a window
+    the box reaches. Vertices are kept (unreferenced ones are harmless), so labels and instances keep their
+    indices."""
     if not dropped:
         return mesh
-    gone = inside_boxes(mesh.vertices, dropped)
+    names = nyu40_label_map() if mesh.labels is not None and mesh.label_set == "nyu40" else None
+    if names is None:
+        gone = inside_boxes(mesh.vertices, dropped)
+    else:
+        ids, inverse = np.unique(mesh.labels, return_inverse=True)
+        vertex_class = np.array([names.get(int(i), "") for i in ids], dtype=object)[inverse.reshape(-1)]
+        gone = np.zeros(len(mesh.vertices), dtype=bool)
+        for node in dropped:
+            gone |= inside_boxes(mesh.vertices, [node]) & (vertex_class == node.cls)
     faces = mesh.faces[~np.any(gone[mesh.faces], axis=1)]
     return LabelledMesh(mesh.vertices, faces, mesh.colors, mesh.labels, mesh.label_set, mesh.instances)
 

@@ -10,7 +10,8 @@ A layout (LAYOUT.json) lists the rooms::
 Bundle paths are relative to the layout file. The same bundle may appear several times (repeated rooms). Each
 room's map and raw points and graph nodes are moved into the building frame; node ids become "<name>/<id>";
 `drop_objects` removes objects of that room: their node, and their points in both clouds (inside the node's box
-grown by DROP_MARGIN_M), as when a chair is missing from one of two identical rooms. The graph's edges are
+grown by DROP_MARGIN_M, of the node's class: the floor and wall under and behind it stay), as when a chair is missing
+from one of two identical rooms. The graph's edges are
 rebuilt over all nodes with the rooms' δ (rooms touching each other get edges across). Instance ids are offset per
 room so that they stay distinct. Each room is a region of the site (`regions.py`): its name, box, nodes and its
 rows of the two clouds (rooms are written one after the other). The building's distance field and each region's
@@ -117,14 +118,25 @@ def _moved(cloud: PointSet, T: np.ndarray, instance_offset: int) -> PointSet:
                    instance=instance)
 
 
-def _outside_boxes(xyz: np.ndarray, nodes: list[ObjectNode]) -> np.ndarray:
-    """(n,) bool: points outside every node's oriented box grown by DROP_MARGIN_M (room frame)."""
-    keep = np.ones(len(xyz), dtype=bool)
-    for n in nodes:
-        local = (xyz - n.box_center) @ n.box_R
-        inside = np.all(np.abs(local) <= n.box_extent / 2 + DROP_MARGIN_M, axis=1)
-        keep &= ~inside
-    return keep
+def inside_boxes(xyz: np.ndarray, nodes: list[ObjectNode], margin_m: float = DROP_MARGIN_M) -> np.ndarray:
+    """(n,) bool: points (n, 3, room frame) inside any node's oriented box grown by `margin_m`."""
+    inside = np.zeros(len(xyz), dtype=bool)
+    for node in nodes:
+        local = (xyz - node.box_center) @ node.box_R
+        inside |= np.all(np.abs(local) <= node.box_extent / 2 + margin_m, axis=1)
+    return inside
+
+
+def _kept_without(cloud: PointSet, dropped: list[ObjectNode], classes: list[str]) -> np.ndarray:
+    """(n,) bool: the points of `cloud` (room frame) a room without the `dropped` objects keeps: all but those of a
+    dropped node's class inside its oriented box grown by DROP_MARGIN_M (`classes`: the room site's class names).
+    The floor and wall under and behind the object stay, as in a room that never had it."""
+    xyz = cloud.points.astype(np.float64)
+    gone = np.zeros(len(xyz), dtype=bool)
+    for node in dropped:
+        k = classes.index(node.cls) if node.cls in classes else -2
+        gone |= inside_boxes(xyz, [node]) & (cloud.class_index == k)
+    return ~gone
 
 
 def _moved_node(node: ObjectNode, name: str, T: np.ndarray) -> ObjectNode:
@@ -178,8 +190,8 @@ def compose_site(layout: Layout, root: str | Path) -> Site:
         dropped = [n for n in r.site.graph.nodes if n.id in r.entry.drop_objects]
         site_map, site_raw = r.site.map, r.site.raw
         if dropped:
-            site_map = site_map.take(_outside_boxes(site_map.points.astype(np.float64), dropped))
-            site_raw = site_raw.take(_outside_boxes(site_raw.points.astype(np.float64), dropped))
+            site_map = site_map.take(_kept_without(site_map, dropped, list(r.site.classes)))
+            site_raw = site_raw.take(_kept_without(site_raw, dropped, list(r.site.classes)))
         maps.append(_moved(site_map, r.T, k * INSTANCE_STRIDE))
         raws.append(_moved(site_raw, r.T, k * INSTANCE_STRIDE))
         room_nodes = [_moved_node(n, r.entry.name, r.T) for n in r.site.graph.nodes if n.id not in r.entry.drop_objects]
