@@ -7,16 +7,15 @@ A layout (LAYOUT.json) lists the rooms::
                {"name": "b", "bundle": "rooms/scene0470", "T_building_room": [[1,0,0,6],...],
                 "drop_objects": ["cad-3"]}]}
 
-Bundle paths are relative to the layout file. The same bundle may appear several times (repeated rooms). Each
-room's map and raw points and graph nodes are moved into the building frame; node ids become "<name>/<id>";
-`drop_objects` removes objects of that room: their node, and their points in both clouds (inside the node's box
-grown by DROP_MARGIN_M, of the node's class: the floor and wall under and behind it stay), as when a chair is missing
-from one of two identical rooms. The graph's edges are
-rebuilt over all nodes with the rooms' δ (rooms touching each other get edges across). Instance ids are offset per
-room so that they stay distinct. Each room is a region of the site (`regions.py`): its name, box, nodes and its
-rows of the two clouds (rooms are written one after the other). The building's distance field and each region's
-grid of points (`RegionGrids`) are built here and stored. The output is one ordinary bundle
-(cadreg/site/bundle.py), loaded and served as any other.
+Bundle paths are relative to the layout file. The same bundle may appear several times (repeated rooms). Each room's
+map and raw points and graph nodes are moved into the building frame; node ids become "<name>/<id>"; `drop_objects`
+removes objects of that room: their node, and their points in both clouds (inside the node's box grown by
+DROP_MARGIN_M, of the node's class: the floor and wall under and behind it stay), as when a chair is missing from
+one of two identical rooms. The graph's edges are rebuilt over all nodes with the rooms' δ (rooms touching each
+other get edges across). Instance ids are offset per room so that they stay distinct. Each room is a region of the
+site (`regions.py`): its name, box, nodes and its rows of the two clouds (rooms are written one after the other).
+The building's distance field and each region's grid of points (`RegionGrids`) are built here and stored. The output
+is one ordinary bundle (cadreg/site/bundle.py), loaded and served as any other.
 """
 
 from __future__ import annotations
