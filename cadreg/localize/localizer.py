@@ -781,10 +781,10 @@ class Localizer:
         """(len(poses),) bool: whether each pose (a copy of T_map_camera in a room that repeats its room) has the
         frame's large objects where it places them: each labelled object of the frame covering at least
         RegionConfig.object_tiebreak_share of its view (`Scan.view_shares`) that T_map_camera places
-        (`_objects_placed`) must be placed by the pose too. A copy that lacks such an object (a building's copies each miss some furniture) shows the
-        frame differently by at least that share of the view, more than the repeated-view oracle's 3 % of the
-        pixels: it repeats no view of it and shows it no better, and is not rendered (at 100 rooms, most of the
-        twin check's 99 copies a frame)."""
+        (`_objects_placed`) must be placed by the pose too. A copy that lacks such an object (a building's copies
+        each miss some furniture) shows the frame differently by at least that share of the view, more than the
+        repeated-view oracle's 3 % of the pixels: it repeats no view of it and shows it no better, and is not
+        rendered (at 100 rooms, most of the twin check's 99 copies a frame)."""
         large = scan.view_shares >= self.config.regions.object_tiebreak_share
         pins = large & self._objects_placed(scan, T_map_camera)[0]
         return self._objects_placed(scan, np.asarray(poses))[:, pins].all(axis=1)
