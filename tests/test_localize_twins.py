@@ -221,3 +221,54 @@ def test_the_copies_of_a_pose_the_objects_put_first_are_looked_at(scene0470_site
     assert shared_scan.clusters  # (the test means something only with objects in view)
     copies = [np.array(moved(dx)) @ T_shared for dx in (ROOM_B_OFFSET_M, 2 * ROOM_B_OFFSET_M)]
     assert loc._shows_objects(shared_scan, T_shared, copies).tolist() == [True, True]
+
+
+@pytest.mark.realdata
+def test_a_copy_a_little_behind_the_answer_is_refined_once(twin_rooms_dir: Path, twin_shared_view) -> None:
+    """`Localizer._promote_twins`: a copy of the winner's view is its pose moved into the copy's room, refined in
+    the winner's room; one that shows the frame a little worse (within RegionConfig.contender_margin, beyond the
+    ambiguity margin) with no copy closer is refined, once a frame, and stands as a rival when its refinement
+    brings it within the ambiguity margin. A copy already within the margin, or far behind, is not refined."""
+    from cadreg.localize.refine import RefineOutcome
+    from cadreg.localize.stages import Candidate, StageTimer
+    from cadreg.result import Diagnostics, Hypothesis
+    from tracking_rooms import ROOM_B_OFFSET_M
+
+    loc = Localizer.from_site(Site.load(twin_rooms_dir))
+    frame, T_a = twin_shared_view
+    diag = Diagnostics(site_id="s", bundle_version="v")
+    scan = loc._scan(frame, diag, StageTimer(diag.stage_ms))
+    to_b = np.eye(4)
+    to_b[0, 3] = ROOM_B_OFFSET_M
+    aside = np.eye(4)
+    aside[1, 3] = 0.5
+
+    def entry(T, score):
+        c = Candidate(T, score, Hypothesis(T, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64))
+        return score, RefineOutcome(T, None, 1, True, "small_gicp"), c, 0.0
+
+    def promote(behind: list[float]):
+        """(refine calls, refined, twins left, renders) for copies in room "b" `behind` the winner's 0.8."""
+        winner = entry(T_a, 0.8)
+        twins = [entry(aside @ to_b @ T_a if k else to_b @ T_a, 0.8 - d) for k, d in enumerate(behind)]
+        calls = []
+
+        def refine(c):  # the copy's refinement fits it to its room: it comes within the ambiguity margin
+            calls.append(c)
+            return 0.79, RefineOutcome(c.T_map_camera, None, 1, True, "small_gicp"), c, 0.0
+
+        refined, candidates = [winner], [winner[2]]
+        renders = {id(winner[1]): scan.view.render(loc.field, T_a)[0]}
+        left = loc._promote_twins(scan, refined, list(twins), refine, candidates, renders, scan.center_camera)
+        return calls, refined, left, renders, candidates, twins
+
+    calls, refined, left, renders, candidates, twins = promote([0.05, 0.06])
+    assert len(calls) == 1 and calls[0] is twins[0][2]  # the nearest copy, and only it
+    assert len(left) == 1 and left[0] is twins[1]
+    assert [r[0] for r in refined] == [0.8, 0.79] and refined[1][2] is twins[0][2]
+    has_rival, margin, rivals = loc._view_rivals(refined, renders, candidates, scan)
+    assert has_rival and margin < loc.config.match.ambiguity_margin
+    assert len(rivals) == 1 and rivals[0].hypothesis.region == "b"
+    assert pose_errors(rivals[0].T_map_camera, to_b @ T_a)[0] < 1e-9
+    assert promote([0.01, 0.05])[0] == []  # a copy within the ambiguity margin makes the answer ambiguous as it is
+    assert promote([0.15])[0] == []  # beyond the contender margin: not the same view
