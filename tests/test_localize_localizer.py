@@ -101,6 +101,23 @@ def test_without_labels_the_fallback_answers(scene, localizer) -> None:
     assert te < 0.02 and re_ < 1.0
 
 
+def test_a_frame_without_labels_is_not_scored_against_the_maps_classes(scene, localizer) -> None:
+    """The candidates' label agreement (`RefineMap.agreement`): a frame without labels says nothing of classes, so
+    its true pose scores as well as the labelled frame's does (which loses a little at the objects' borders);
+    counted as points of no class, the frame's points on the map's objects halved it, and poses that laid them on
+    walls ranked first."""
+    from cadreg.localize.stages import StageTimer
+    from cadreg.result import Diagnostics
+
+    (f, T), = _views(scene, 1, seed=5, min_objects=3)
+    diag = Diagnostics()
+    bare = localizer._scan(replace(f, labels=None), diag, StageTimer(diag.stage_ms))
+    labelled = localizer._scan(f, diag, StageTimer(diag.stage_ms))
+    assert bare.fit_cls is None and (labelled.fit_cls >= 0).any()
+    score = localizer._agreement_score(T, labelled)
+    assert score > 0.8 and localizer._agreement_score(T, bare) >= score
+
+
 def test_refinement_methods_and_top_k(scene, localizer) -> None:
     (f, T), = _views(scene, 1, seed=9)
     for method in ("small_gicp", "color_gicp"):

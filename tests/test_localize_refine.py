@@ -202,6 +202,10 @@ def test_fitness_and_agreement(scene_and_frame) -> None:
     assert geo > 0.95 and col > 0.7
     wrong = rmap.agreement(transform_points(T, pts.xyz), rgb_to_lab(1.0 - pts.rgb), cls)
     assert wrong[2] < col - 0.3
+    # Frame points of no class the site knows (a labelled frame's walls) disagree with the map's objects they land
+    # on (the frame sees a chair); a frame without labels says nothing of classes, wherever its points land.
+    assert sem < 0.5
+    assert rmap.agreement(transform_points(T, pts.xyz), rgb_to_lab(pts.rgb), None) == (geo, 1.0, col)
 
 
 def test_frame_points_far_from_the_map_never_reach_small_gicps_search(scene_and_frame, monkeypatch) -> None:

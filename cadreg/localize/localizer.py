@@ -314,7 +314,8 @@ class Localizer:
         fit = rng.choice(len(down), min(fc.fit_points, len(down)), replace=False)
         check = rng.choice(len(points), min(fc.check_points, len(points)), replace=False)
         return Scan(points, down, class_index, clusters, floor, score_xyz=down.xyz[score], fit_xyz=down.xyz[fit],
-                    fit_lab=rgb_to_lab(down.rgb[fit]), fit_cls=class_index[fit], check_xyz=points.xyz[check],
+                    fit_lab=rgb_to_lab(down.rgb[fit]), fit_cls=class_index[fit] if labelled.any() else None,
+                    check_xyz=points.xyz[check],
                     zbuf=ViewCheck.zbuffer(down.xyz, frame.depth_intrinsics), K=frame.depth_intrinsics,
                     center_camera=points.xyz.mean(axis=0), search=frame.search_region,
                     view=FieldView(frame) if len(self.maps) > 1 else None)

@@ -41,7 +41,8 @@ class Scan:
         when none could be found.
     score_xyz : (≤ score_points, 3) float64 sample of `down` for the distance-field check.
     fit_xyz, fit_lab, fit_cls : a sample of `down` (≤ fit_points): positions, CIE Lab colours, class index, for
-        the label and colour agreement that ranks coarse-aligned candidates.
+        the label and colour agreement that ranks coarse-aligned candidates; fit_cls None for a frame that
+        carries no labels (nothing to agree or disagree with the map's classes).
     check_xyz : (≤ check_points, 3) float64 sample of `points` for the final fitness.
     zbuf : coarse z-buffer of `points` (`score.ViewCheck.zbuffer`) for the free-space check; K : the depth
         intrinsics it was projected with. None for scans built without a frame.
@@ -61,7 +62,7 @@ class Scan:
     score_xyz: np.ndarray
     fit_xyz: np.ndarray
     fit_lab: np.ndarray
-    fit_cls: np.ndarray
+    fit_cls: np.ndarray | None
     check_xyz: np.ndarray
     zbuf: np.ndarray | None = None
     K: object | None = None
