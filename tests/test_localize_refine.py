@@ -206,6 +206,15 @@ def test_fitness_and_agreement(scene_and_frame) -> None:
     # on (the frame sees a chair); a frame without labels says nothing of classes, wherever its points land.
     assert sem < 0.5
     assert rmap.agreement(transform_points(T, pts.xyz), rgb_to_lab(pts.rgb), None) == (geo, 1.0, col)
+    # The frame's own classes agree with the map's at the true pose; a map without classes (fused without labels)
+    # says nothing of them.
+    site = scene_and_frame[0].site
+    classes = site.classes_for_labels(frame.label_set, pts.labels)
+    assert (classes >= 0).sum() > 100
+    assert rmap.agreement(transform_points(T, pts.xyz), rgb_to_lab(pts.rgb), classes)[1] > 0.8
+    bare_map = RefineMap(site.map.points, site.map.colors / 255.0, None)
+    assert bare_map.agreement(transform_points(T, pts.xyz), rgb_to_lab(pts.rgb), classes)[1] == 1.0
+    assert bare_map.agreement(transform_points(make_T(t=[0.3, 0.0, 0.0]) @ T, pts.xyz), rgb_to_lab(pts.rgb), classes)[1] == 1.0
 
 
 def test_frame_points_far_from_the_map_never_reach_small_gicps_search(scene_and_frame, monkeypatch) -> None:

@@ -120,6 +120,7 @@ class RefineMap:
         self._fit_lab: np.ndarray | None = None  # CIE Lab of fit_xyz, made on first use (`fit_lab`)
         self.fit_cls = (np.full(len(self.fit_xyz), -1, dtype=np.int64) if class_index is None
                         else np.asarray(class_index, dtype=np.int64)[keep])
+        self.has_classes = bool(np.any(self.fit_cls >= 0))  # a map fused without labels has none (`agreement`)
         # The nearest neighbours of `fitness`, `agreement` and the grid GICP, bounded by a distance: for points off
         # the map (a wrong hypothesis, a frame looking past the map's edge) small_gicp's unbounded search took 30 ms
         # for 1000 points where a bounded one takes 0.8.
@@ -197,10 +198,11 @@ class RefineMap:
         hypothesis); cls (n,) class index, -1 none (a labelled point of no class the site knows: a wall), or None
         for a frame without labels.
         Semantic: among inliers where the frame or the map has an object class, the fraction whose classes agree
-        (1 when there is none, and for a frame without labels: its points say nothing of classes, and counting
-        them as "no class" put every pose that lays them on the map's furniture below every pose that lays them
-        on its walls; on the 1-room benchmark without labels the right pose ranked third at half the score of
-        wrong ones in 6 of its 10 failures). Colour: mean exp(-(ΔE / color_scale)²) over inliers (CIE76 ΔE).
+        (1 when there is none, and when either side has no labels at all: a frame without labels, or a map fused
+        without them, says nothing of classes, and counting its points as "no class" put every pose that lays the
+        frame on objects below every pose that lays it on walls; on the 1-room benchmark without labels the right
+        pose ranked third at half the score of wrong ones in 6 of its 10 failures). Colour: mean
+        exp(-(ΔE / color_scale)²) over inliers (CIE76 ΔE).
         """
         if len(xyz_map) == 0:
             return 0.0, 0.0, 0.0
@@ -210,7 +212,7 @@ class RefineMap:
             return 0.0, 0.0, 0.0
         nn = nn[ok]
         sem = 1.0
-        if cls is not None:
+        if cls is not None and self.has_classes:
             fc, mc = cls[ok], self.fit_cls[nn]
             either = (fc >= 0) | (mc >= 0)
             sem = float((fc[either] == mc[either]).mean()) if either.sum() >= 10 else 1.0
