@@ -696,11 +696,11 @@ class Localizer:
         when it shows it better than the winner (view agreement `score`); or, when `below` (once a frame: on the
         100-room benchmark a fifth of the frames had such a copy, and a second or third one refined never changed
         an answer), when it lies below, within RegionConfig.contender_margin, and no copy stands within the
-        ambiguity margin. A copy's pose is the
-        winner's refined pose moved into its room, and that refinement fitted the winner's room, not the copy's:
-        in a 10-room building the right room's copy of a view answered `ok` in its neighbour landed 2.3 cm off
-        and showed the frame 0.767 to the winner's 0.811, where the truth showed it 0.815. Refined, it is judged
-        as the winner was. A copy already within the ambiguity margin makes the answer ambiguous as it stands."""
+        ambiguity margin. A copy's pose is the winner's refined pose moved into its room, and that refinement
+        fitted the winner's room, not the copy's: in a 10-room building the right room's copy of a view answered
+        `ok` in its neighbour landed 2.3 cm off and showed the frame 0.767 to the winner's 0.811, where the truth
+        showed it 0.815. Refined, it is judged as the winner was. A copy already within the ambiguity margin makes
+        the answer ambiguous as it stands."""
         if not twins:
             return None
         best = max(twins, key=lambda t: t[0])
