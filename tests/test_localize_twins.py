@@ -248,7 +248,8 @@ def test_a_copy_a_little_behind_the_answer_is_refined_once(twin_rooms_dir: Path,
         return score, RefineOutcome(T, None, 1, True, "small_gicp"), c, 0.0
 
     def promote(behind: list[float]):
-        """(refine calls, refined, twins left, renders) for copies in room "b" `behind` the winner's 0.8."""
+        """(refine calls, refined, copies left, renders, candidates, copies given) for copies in room "b"
+        `behind` the winner's view agreement of 0.8."""
         winner = entry(T_a, 0.8)
         twins = [entry(aside @ to_b @ T_a if k else to_b @ T_a, 0.8 - d) for k, d in enumerate(behind)]
         calls = []
