@@ -273,6 +273,19 @@ def building_summary(outcomes: list[FrameOutcome], s5: np.ndarray) -> dict:
     }
 
 
+def per_frame_record(o: FrameOutcome) -> dict:
+    """One frame's outcome as the report's `per_frame` lists it: which frames failed how (status, error,
+    confidence), to compare two runs frame by frame or to look at one. Errors, overlap and confidence are null
+    where there is none (no pose came back, no map at the truth, a method without a confidence)."""
+    def num(x: float, digits: int) -> float | None:
+        return round(float(x), digits) if np.isfinite(x) else None
+
+    return {"index": o.index, "status": o.status, "translation_m": num(o.translation_m, 4),
+            "rotation_deg": num(o.rotation_deg, 3), "ms": num(o.total_ms, 1), "confidence": num(o.confidence, 3),
+            "truth_in_hypotheses": o.truth_in_hypotheses, "repeated": o.repeated, "gt_overlap": num(o.gt_overlap, 3),
+            "objects_in_view": o.objects_in_view}
+
+
 def summarize(outcomes: list[FrameOutcome]) -> dict:
     """Summary of one method (DESIGN §8 keys, plus breakdowns; `unique` / `repeated` when some outcome knows
     whether another room repeats its view)."""
@@ -334,6 +347,7 @@ def summarize(outcomes: list[FrameOutcome]) -> dict:
         "gt_fits_worse": len(gt_worse),
         "gt_fits_worse_frames": gt_worse,
         "failed_frames": [o.index for o, ok in zip(outcomes, s5) if not ok],
+        "per_frame": [per_frame_record(o) for o in outcomes],
     }
     if any(o.repeated is not None for o in outcomes):
         out.update(building_summary(outcomes, s5))

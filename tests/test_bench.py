@@ -43,7 +43,11 @@ def test_summary_figures_are_computed_as_documented() -> None:
     assert s["by_objects_in_view"]["0"]["frames"] == 1 and s["by_objects_in_view"]["3+"]["success_5cm_5deg"] == 0.0
     assert s["failed_frames"] == [1, 2, 3]
     assert s["stage_ms"]["refine"]["p50"] == 15.0  # frames without the stage count as 0 ms
-    json.dumps(s)
+    # frame by frame, in order; no pose and no confidence are null (JSON has no inf or nan)
+    assert [r["index"] for r in s["per_frame"]] == [0, 1, 2, 3]
+    assert s["per_frame"][1]["translation_m"] == 0.07 and s["per_frame"][1]["status"] == "ok"
+    assert s["per_frame"][2]["translation_m"] is None and s["per_frame"][2]["confidence"] is None
+    json.dumps(s, allow_nan=False)
 
 
 def test_ground_truth_diagnostics() -> None:
@@ -86,6 +90,12 @@ def test_bench_cli_on_real_renders(scene0470_site_dir, frames_dir, tmp_path, cap
         assert set(s) >= DESIGN_KEYS
         assert s["success_5cm_5deg"] == 1.0 and s["median_translation_m"] < 0.02
     assert set(report["methods"]["cadreg"]["stage_ms"]) >= {"points", "match", "refine"}
+    # frame by frame: the two frames with a ground truth, each with its status, error and confidence
+    rows = report["methods"]["cadreg"]["per_frame"]
+    assert [r["index"] for r in rows] == [0, 1]
+    for r in rows:
+        assert r["status"] == "ok" and 0.0 <= r["translation_m"] < 0.02 and 0.0 < r["confidence"] <= 1.0
+        assert r["truth_in_hypotheses"] and r["repeated"] is None and r["ms"] > 0 and r["gt_overlap"] > 0.5
     printed = capsys.readouterr().out
     assert "cadreg" in printed and "@5cm/5°" in printed
     assert format_table(report).splitlines()[0].startswith("frames: 2")
