@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from cadreg import Site
 from cadreg.config import LocalizeConfig, MatchConfig, RegionConfig
 from cadreg.geometry import pose_errors
-from cadreg.localize.localizer import Localizer
+from cadreg.localize.localizer import Localizer, Renders
 from cadreg.localize.match import MapGraph
 from cadreg.localize.twins import RoomTwins
 from cadreg.result import Status
@@ -208,7 +208,8 @@ def test_the_copies_of_a_pose_the_objects_put_first_are_looked_at(scene0470_site
     score = float(scan.view.agreement(render)[0])
     out = RefineOutcome(T_a, None, 1, True, "small_gicp")
     winner = Candidate(T_a, score, Hypothesis(T_a, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64))
-    candidates, renders = [winner], {id(out): render}
+    candidates, renders = [winner], Renders()
+    renders[out] = render
     twins = loc._promoted_twins(scan, [(score, out, winner, 0.0)], scan.center_camera, candidates, renders)
     in_b, in_c = np.array(moved(ROOM_B_OFFSET_M)) @ T_a, np.array(moved(2 * ROOM_B_OFFSET_M)) @ T_a
     assert any(pose_errors(t.T_map_camera, in_c)[0] < 0.05 and t.hypothesis.region == "c" for t in twins)
@@ -259,7 +260,8 @@ def test_a_copy_a_little_behind_the_answer_is_refined_once(twin_rooms_dir: Path,
             return 0.79, RefineOutcome(c.T_map_camera, None, 1, True, "small_gicp"), c, 0.0
 
         refined, candidates = [winner], [winner[2]]
-        renders = {id(winner[1]): scan.view.render(loc.field, T_a)[0]}
+        renders = Renders()
+        renders[winner[1]] = scan.view.render(loc.field, T_a)[0]
         left = loc._promote_twins(scan, refined, list(twins), refine, candidates, renders, scan.center_camera)
         return calls, refined, left, renders, candidates, twins
 
@@ -273,3 +275,66 @@ def test_a_copy_a_little_behind_the_answer_is_refined_once(twin_rooms_dir: Path,
     assert pose_errors(rivals[0].T_map_camera, to_b @ T_a)[0] < 1e-9
     assert promote([0.01, 0.05])[0] == []  # a copy within the ambiguity margin makes the answer ambiguous as it is
     assert promote([0.15])[0] == []  # beyond the contender margin: not the same view
+
+
+def test_a_render_belongs_to_its_outcome_not_to_an_id_a_discarded_one_freed() -> None:
+    """`Renders`: the refine stage discards outcomes (copies the twin check replaces); keyed by a bare id, a new
+    outcome could take a discarded one's id and read its render, and an answer depended on the frames before it."""
+    from cadreg.localize.refine import RefineOutcome
+
+    renders = Renders()
+    for k in range(200):
+        outcome = RefineOutcome(np.eye(4), None, 0, False, "field")  # the previous one is unreferenced here
+        assert outcome not in renders
+        renders[outcome] = np.full(3, float(k))
+        assert outcome in renders and renders[outcome][0] == k
+    with pytest.raises(KeyError):
+        renders[RefineOutcome(np.eye(4), None, 0, False, "field")]
+
+
+@pytest.mark.realdata
+def test_of_poses_that_look_alike_the_one_the_frames_points_fit_closest_goes_first(
+        twin_rooms_dir: Path, scene0470_dir: Path, twin_shared_view, tmp_path: Path) -> None:
+    """`Localizer._closest_fit_first`: room "b" copies room "a" without a chair and the bin. A frame of room "a"
+    that sees them (no labels), answered in "b" with "a" as a rival along its rays, has "a" put first: the frame's
+    points lie on the map there, on nothing where the copy lacks the chair. The view both rooms show fits both
+    alike and keeps its order."""
+    from dataclasses import replace
+
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.localize.refine import RefineOutcome
+    from cadreg.localize.stages import Candidate, StageTimer
+    from cadreg.result import Diagnostics, Hypothesis
+    from tracking_rooms import ROOM_B_OFFSET_M, render_turn
+
+    loc = Localizer.from_site(Site.load(twin_rooms_dir))
+    to_b = np.eye(4)
+    to_b[0, 3] = ROOM_B_OFFSET_M
+
+    def entry(T):
+        c = Candidate(T, 0.9, Hypothesis(T, 0.0, 0.0, 0.0, 0.9), np.zeros(0, np.int64))
+        return 0.9, RefineOutcome(T, None, 1, True, "small_gicp"), c, 0.0
+
+    def answered_in_b(frame, T_a):
+        diag = Diagnostics(site_id="s", bundle_version="v")
+        scan = loc._scan(replace(frame, labels=None), diag, StageTimer(diag.stage_ms))
+        in_b, in_a = entry(to_b @ T_a), entry(T_a)
+        refined, candidates, calls = [in_b], [in_b[2], in_a[2]], []
+
+        def refine(c):  # the rival's refinement: its pose is already the true one
+            calls.append(c)
+            return 0.9, in_a[1], c, 0.0
+
+        loc._closest_fit_first(scan, refined, [in_a[2]], refine, candidates, diag)
+        return refined, calls, diag.notes
+
+    frames = render_turn(scene0470_dir / "scene0470_00_vh_clean_2.ply",
+                         scene0470_dir / "scene0470_00_vh_clean_2.labels.ply", tmp_path / "turn", n=2)
+    chair_view, T_a = RecordedFrames.open(frames).load(1)  # the chair and the bin only room "a" holds
+    refined, calls, notes = answered_in_b(chair_view, T_a)
+    assert len(calls) == 1 and pose_errors(refined[0][1].T_map_camera, T_a)[0] < 1e-9
+    assert pose_errors(refined[1][1].T_map_camera, to_b @ T_a)[0] < 1e-9  # the answer before it stays, second
+    assert any("lie closest to the map" in n for n in notes)
+    shared, T_shared = twin_shared_view  # the table's corner, which both rooms show
+    refined, calls, _ = answered_in_b(shared, T_shared)
+    assert not calls and len(refined) == 1 and pose_errors(refined[0][1].T_map_camera, to_b @ T_shared)[0] < 1e-9
