@@ -279,7 +279,7 @@ def test_a_copy_a_little_behind_the_answer_is_refined_once(twin_rooms_dir: Path,
 
 def test_a_render_belongs_to_its_outcome_not_to_an_id_a_discarded_one_freed() -> None:
     """`Renders`: the refine stage discards outcomes (copies the twin check replaces); keyed by a bare id, a new
-    outcome could take a discarded one's id and read its render, and an answer depended on the frames before it."""
+    outcome could take a discarded one's id and read its render as its own."""
     from cadreg.localize.refine import RefineOutcome
 
     renders = Renders()

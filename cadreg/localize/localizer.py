@@ -114,8 +114,8 @@ TOP_PERCENTILE = 98
 class Renders:
     """The map's depth along the frame's rays ((r,), `FieldView.render`) at the poses of one frame's refine stage,
     by the outcome (RefineOutcome) each belongs to. Each outcome is held with its render: keyed by a bare `id`, an
-    outcome the stage discards (a copy the twin check replaces) freed its id for a new one, which then read the
-    old one's render, and a frame's answer depended on the frames before it."""
+    outcome the stage discards (a copy the twin check replaces) freed its id for a new one, which could then read
+    the old one's render as its own."""
 
     def __init__(self) -> None:
         self._by_id: dict[int, tuple[object, np.ndarray]] = {}
