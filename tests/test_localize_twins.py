@@ -338,3 +338,24 @@ def test_of_poses_that_look_alike_the_one_the_frames_points_fit_closest_goes_fir
     shared, T_shared = twin_shared_view  # the table's corner, which both rooms show
     refined, calls, _ = answered_in_b(shared, T_shared)
     assert not calls and len(refined) == 1 and pose_errors(refined[0][1].T_map_camera, to_b @ T_shared)[0] < 1e-9
+
+
+@pytest.mark.realdata
+def test_a_rival_put_first_without_a_render_is_rendered_for_the_answer(twin_rooms_dir: Path, twin_shared_view,
+                                                                        monkeypatch) -> None:
+    """The refine stage's last step reads the answer's render; a rival put first by a tie-break
+    (`_closest_fit_first`, `_told_by_objects`) may come from a refinement that left it as it was (a pose the frame
+    sees through), with no render: the answer is rendered then, not a KeyError (a request's 500)."""
+    from cadreg.localize.refine import RefineOutcome
+
+    loc = Localizer.from_site(Site.load(twin_rooms_dir))
+    frame, T_a = twin_shared_view
+
+    def put_a_bare_outcome_first(scan, refined, rivals, refine, candidates, diag):
+        c = rivals[0] if rivals else refined[0][2]
+        refined.insert(0, (1.0, RefineOutcome(c.T_map_camera, None, 0, False, "small_gicp"), c, 0.0))
+
+    monkeypatch.setattr(Localizer, "_closest_fit_first", staticmethod(put_a_bare_outcome_first))
+    r = loc.localize(frame)  # the view both rooms show: its rivals are there
+    assert r.status == Status.AMBIGUOUS
+    assert any(pose_errors(h.T_map_camera, T_a)[0] < 0.05 for h in r.hypotheses)

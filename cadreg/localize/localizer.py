@@ -682,6 +682,8 @@ class Localizer:
         if scan.view is not None:
             # In a building, along the frame's rays through the whole map: a region's map holds its neighbours
             # only 3 m out, and a view over the low walls of a composed building reaches farther.
+            if out not in renders:  # a rival put first unrefined (`refine` leaves one it sees through as it was)
+                renders[out] = scan.view.render(self.field, out.T_map_camera)[0]
             agreement, coverage = scan.view.shared(renders[out])
         elif scan.zbuf is None:
             agreement, coverage = 1.0, 1.0
