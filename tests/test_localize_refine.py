@@ -13,7 +13,7 @@ from cadreg.geometry import make_T, pose_errors, transform_points
 from cadreg.localize.color_gicp import ColorGicpTarget, color_gicp, plane_covariances, prepare_cloud, rgb_to_lab
 from cadreg.localize.grid_gicp import PLANE_EPS, MapNormals, _linearize, gicp, plane_covariance, plane_normals, se3_exp
 from cadreg.localize.points import FramePoints, frame_to_points
-from cadreg.localize.refine import GRID_PAIRS_PER_MAP_POINT, RefineMap
+from cadreg.localize.refine import RefineMap
 from cadreg.localize.synthetic import look_pose, make_scene, render_frame
 
 
@@ -87,25 +87,24 @@ def test_each_gicp_keeps_its_own_iteration_budget(scene_and_frame) -> None:
     assert cut.method == full.method == "small_gicp" and off(full) < 0.01 and off(full) < off(cut)
 
 
-def test_a_region_map_builds_small_gicps_target_once_its_refinements_would_have_paid_for_it(scene_and_frame) -> None:
+def test_a_region_map_refines_on_its_grid_whatever_it_served_before(scene_and_frame) -> None:
+    """A building's region map refines on its grid however often it has refined, and after a tracked stream has
+    built small_gicp's target for it: the same start gives the same pose, bit for bit (it used to switch to that
+    target once its refinements had paid for it, and a borderline answer moved with the frames before)."""
     scene, frame, T, _ = scene_and_frame
     pts = frame_to_points(frame)
     site = scene.site
     grid = RefineMap(site.map.points, site.map.colors / 255.0, site.map.class_index, stored_target=True)
     T0 = _perturbed(T, seed=3, t_m=0.08, r_deg=3.0)
-    methods = []
-    while len(methods) < 200 and (not methods or methods[-1] == "grid_gicp"):
-        paired = grid.grid_pairs
-        out = grid.refine(pts, T0, method="small_gicp")
-        methods.append(out.method)
-        assert pose_errors(out.T_map_camera, T)[0] < 0.01
-        if out.method == "grid_gicp":
-            assert grid.grid_pairs > paired and grid._sg_fine is None
-    # the grid GICP ran until it had paired as many frame points as the map has points, then small_gicp's target
-    # was built once and kept
-    assert methods[-1] == "small_gicp" and methods.count("small_gicp") == 1 and len(methods) > 2
-    assert GRID_PAIRS_PER_MAP_POINT * len(grid.xyz) <= grid.grid_pairs and grid._sg_fine is not None
-    assert grid.refine(pts, T0, method="small_gicp").method == "small_gicp" and grid.fine_target() is grid._sg_fine
+    first = grid.refine(pts, T0, method="small_gicp")
+    assert first.method == "grid_gicp" and pose_errors(first.T_map_camera, T)[0] < 0.01
+    for _ in range(30):  # more than the refinements that once bought the target
+        again = grid.refine(pts, T0, method="small_gicp")
+        assert again.method == "grid_gicp" and np.array_equal(again.T_map_camera, first.T_map_camera)
+    assert grid._sg_fine is None
+    grid.fine_target()  # what a tracked stream builds
+    after = grid.refine(pts, T0, method="small_gicp")
+    assert after.method == "grid_gicp" and np.array_equal(after.T_map_camera, first.T_map_camera)
 
 
 def test_grid_gicp_terms_are_the_gicp_cost_written_out() -> None:

@@ -5,8 +5,9 @@ Written by hand, and why: small_gicp takes no covariances computed elsewhere and
 each refinement in a building built a small_gicp target around the frame (a voxel grid, a KD-tree and a covariance
 for each of some 30 k map points: 46 of the 255 ms a 100-room frame took), to run two or three GICP iterations from
 a start the field alignment had put within a centimetre or two. Here the map's covariances are made only for the
-map points a refinement pairs with, on first use, and kept with the map for the frames that come back to it (a
-region that keeps serving frames builds small_gicp's target after all: `refine.GRID_PAIRS_PER_MAP_POINT`).
+map points a refinement pairs with, on first use, and kept with the map for the frames that come back to it (and
+a region's frames always refine here, whatever it served before, so that a frame's answer does not depend on the
+frames before it: `RefineMap.refine`).
 
 The cost and its parts are small_gicp's (Segal et al. 2009; small_gicp's `GICPFactor`): residual r = q - T p for
 the nearest map point q within the correspondence distance, cost ½ Σ rᵀ (C_q + R C_p Rᵀ)⁻¹ r, covariances from

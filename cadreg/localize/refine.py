@@ -37,13 +37,6 @@ WIDE_PASS = 2.5
 # wide pass's reach plus this from the map at the start pairs with nothing in either pass unless the pose moves
 # that far, and is left out (the result is the same: same iterations, same inliers).
 REACH_MARGIN_M = 0.25
-# A building's region map refines with the GICP on its grid (`grid_gicp.py`) until that GICP has paired this many
-# frame points (summed over its iterations) per map point, then builds small_gicp's whole target once and refines
-# on it: the grid GICP costs about 1 µs a pair an iteration and the whole target about 1 µs a map point (160-170 ms
-# for a 100-room building's region), and small_gicp aligns on a built target several times faster. Renting until
-# the rent paid equals the price, then buying, costs at most twice what knowing the future would: a region that
-# serves a few frames never builds the target, one frames keep coming back to (a stream, a small building) does.
-GRID_PAIRS_PER_MAP_POINT = 1.0
 
 
 def crop_to_roi(points: FramePoints, radius_m: float,
@@ -88,8 +81,7 @@ class RefineMap:
     xyz : (n, 3) float; rgb : (n, 3) float in [0, 1]. gridded : the points are one per fitness_voxel_m voxel already.
     tree_ordered : gridded points in the order of their KD-tree (`point_tree.tree_order`: a building's stored
     region grid), so that the tree is read, not built. stored_target : a building's region map; its GICP pairs the
-    frame with the fitness grid through the fitness KD-tree (`grid_gicp.py`) until it has done the work of building
-    small_gicp's target (GRID_PAIRS_PER_MAP_POINT).
+    frame with the fitness grid through the fitness KD-tree (`grid_gicp.py`), whatever the map served before.
     """
 
     def __init__(self, xyz: np.ndarray, rgb: np.ndarray, class_index: np.ndarray | None = None, *, fine_voxel_m: float = 0.025, coarse_voxel_m: float = 0.08,
@@ -126,11 +118,9 @@ class RefineMap:
         # for 1000 points where a bounded one takes 0.8.
         self.fit_tree = PointTree(self.fit_xyz)
         # A building's region map often serves a few refinements before its cache drops it: its GICP normals are
-        # made for the points those pair with, not for the whole map (`grid_gicp.py`), until its refinements have
-        # paired as many frame points as small_gicp's whole target would cost (GRID_PAIRS_PER_MAP_POINT).
+        # made for the points those pair with, not for the whole map (`grid_gicp.py`).
         self.stored_target = stored_target
         self.normals = MapNormals(self.fit_xyz, self.fit_tree, GICP_NEIGHBORS) if stored_target else None
-        self.grid_pairs = 0  # frame points the grid GICP has paired on this map, summed over its iterations
         self._color_targets: list[ColorGicpTarget] | None = None
         self._o3d_targets: list | None = None
 
@@ -238,8 +228,12 @@ class RefineMap:
         max_iterations : per pass; grid_max_iterations : per pass of the GICP on a building's region map (default:
         max_iterations)."""
         T_init = np.asarray(init_T_map_camera, dtype=np.float64)
-        if method == "small_gicp" and self.stored_target and self._sg_fine is None and (
-                self.grid_pairs < GRID_PAIRS_PER_MAP_POINT * len(self.xyz)):
+        if method == "small_gicp" and self.stored_target:
+            # Always on the grid, whatever the map served before: the region used to switch to small_gicp's whole
+            # target once its refinements had paid for building it (or a tracked stream had built it), and the two
+            # differ below a millimetre, enough to move a borderline answer's status with the frames a worker had
+            # seen (10 rooms: 6 of 120 frames' confidences moved, one `ok` <-> `ambiguous`; grid only: none, the
+            # same medians). A tracked stream keeps its target (`tracking.py`).
             return self._refine_on_grid(points, T_init, epsilon=epsilon, source_voxel_m=source_voxel_m,
                                         max_correspondence_m=max_correspondence_m,
                                         max_iterations=grid_max_iterations or max_iterations)
@@ -307,6 +301,5 @@ class RefineMap:
             res = gicp(self.normals, src, src_normals, T, max_correspondence_m=corr, max_iterations=max_iterations,
                        epsilon=epsilon)
             T = res.T_target_source
-            self.grid_pairs += len(src) * res.iterations
         cov = covariance_from_hessian(res.H, res.error, res.inliers)
         return RefineOutcome(T, cov, res.iterations, res.converged, "grid_gicp")
