@@ -888,18 +888,23 @@ class Localizer:
         if explained[k] - second < self.config.regions.object_tiebreak_share:
             return False
         if k > 0:
-            rival = rivals[k - 1]
-            promoted = next((r for r in refined if r[1].T_map_camera is rival.T_map_camera), None)
-            if promoted is None:
-                promoted = refine(rival)
-            else:
-                refined.remove(promoted)
-            refined.insert(0, promoted)
-            self._report_refined(refined, candidates)
+            self._put_first(rivals[k - 1], refined, refine, candidates)
         diag.notes.append(f"the frame's objects: {100 * explained[k]:.1f} % of its view lies in objects whose map "
                           f"node is where the answer places them, at most {100 * second:.1f} % at the "
                           f"{len(poses) - 1} other poses that look the same")
         return True
+
+    def _put_first(self, rival: Candidate, refined: list, refine, candidates: list[Candidate]) -> None:
+        """A rival a tie-break chose becomes the answer: its refined entry moved to the front of `refined`, or, when
+        it was not refined, refined now (`refine`, the refine stage's) and put there; `candidates` reordered to
+        match (`_report_refined`)."""
+        promoted = next((r for r in refined if r[1].T_map_camera is rival.T_map_camera), None)
+        if promoted is None:
+            promoted = refine(rival)
+        else:
+            refined.remove(promoted)
+        refined.insert(0, promoted)
+        self._report_refined(refined, candidates)
 
     def _closest_fit_first(self, scan: Scan, refined: list, rivals: list[Candidate], refine,
                            candidates: list[Candidate], diag: Diagnostics) -> None:
@@ -920,14 +925,7 @@ class Localizer:
         k = int(np.argmax(fit))
         if k == 0 or fit[k] < fit[0] + TIE_FIT_MARGIN:
             return
-        rival = rivals[k - 1]
-        promoted = next((r for r in refined if r[1].T_map_camera is rival.T_map_camera), None)
-        if promoted is None:
-            promoted = refine(rival)
-        else:
-            refined.remove(promoted)
-        refined.insert(0, promoted)
-        self._report_refined(refined, candidates)
+        self._put_first(rivals[k - 1], refined, refine, candidates)
         diag.notes.append(f"of {len(poses)} poses that look the same, the frame's points lie closest to the map at "
                           f"the one put first ({fit[k]:.3f} within {100 * TIE_FIT_TAU_M:.0f} cm, the answer before it "
                           f"{fit[0]:.3f})")
