@@ -635,8 +635,6 @@ class Localizer:
                 twins += [t for t in more if all(self._distinct(t[1].T_map_camera, u[1].T_map_camera) for u in twins)]
             twins = self._promote_twins(scan, refined, twins, refine, candidates, renders, center_camera)
             candidates.extend(t[2] for t in twins)
-            if refined[0][1] not in renders:  # every contender was left unrefined (it saw through the map)
-                renders[refined[0][1]] = scan.view.render(self.field, refined[0][1].T_map_camera)[0]
             has_rival, margin, rivals = self._view_rivals(refined + twins, renders, candidates, scan)
             diag.notes.append(f"refined {len(refined)} of the best poses, view agreement "
                               + ", ".join(f"{r[0]:.3f}" for r in refined)
@@ -682,9 +680,7 @@ class Localizer:
         if scan.view is not None:
             # In a building, along the frame's rays through the whole map: a region's map holds its neighbours
             # only 3 m out, and a view over the low walls of a composed building reaches farther.
-            if out not in renders:  # a rival put first unrefined (`refine` leaves one it sees through as it was)
-                renders[out] = scan.view.render(self.field, out.T_map_camera)[0]
-            agreement, coverage = scan.view.shared(renders[out])
+            agreement, coverage = scan.view.shared(self._render_of(scan, renders, out))
         elif scan.zbuf is None:
             agreement, coverage = 1.0, 1.0
         else:
@@ -937,15 +933,21 @@ class Localizer:
         (RegionConfig.twin_agreement): `_look_alike`, as `_view_rivals` has them. Each is added to `candidates`."""
         score, out = refined[0][0], refined[0][1]
         twins = self._twin_views(scan, out.T_map_camera, center_camera, candidates, renders, len(refined), score)
-        if out not in renders:
-            renders[out] = scan.view.render(self.field, out.T_map_camera)[0]
         if not twins:
             return []
         alike = self._look_alike(scan, score, np.array([t[0] for t in twins]),
-                                 np.stack([renders[t[1]] for t in twins]), renders[out])
+                                 np.stack([renders[t[1]] for t in twins]), self._render_of(scan, renders, out))
         standing = [t[2] for t, a in zip(twins, alike) if a]
         candidates.extend(standing)
         return standing
+
+    def _render_of(self, scan: Scan, renders: Renders, outcome: RefineOutcome) -> np.ndarray:
+        """The map's depth along the frame's rays at an outcome's pose, rendered and kept when it has none yet: an
+        outcome `refine` left as it was (a pose the frame sees through) has none, whether it stays a rival or a
+        tie-break puts it first."""
+        if outcome not in renders:
+            renders[outcome] = scan.view.render(self.field, outcome.T_map_camera)[0]
+        return renders[outcome]
 
     def _look_alike(self, scan: Scan, score: float, scores: np.ndarray, rendered: np.ndarray,
                     mine: np.ndarray) -> np.ndarray:
@@ -986,15 +988,13 @@ class Localizer:
         pose, 0 when a twin stands."""
         mc = self.config.match
         score, out, winner, _ = refined[0]
-        T, mine = out.T_map_camera, renders[out]
+        T, mine = out.T_map_camera, self._render_of(scan, renders, out)
         rivals, margin, has_rival = [], score, False
         for s_r, o_r, c_r, _ in refined[1:]:
             if not self._distinct(o_r.T_map_camera, T):
                 continue
-            if o_r not in renders:  # a rival left unrefined (it saw through the map at its coarse pose)
-                renders[o_r] = scan.view.render(self.field, o_r.T_map_camera)[0]
             has_rival, margin = True, min(margin, score - s_r)
-            if self._look_alike(scan, score, np.array([s_r]), renders[o_r][None], mine)[0]:
+            if self._look_alike(scan, score, np.array([s_r]), self._render_of(scan, renders, o_r)[None], mine)[0]:
                 rivals.append(next(c for c in candidates if c.T_map_camera is o_r.T_map_camera))
         done = [r[1].T_map_camera for r in refined] + [r[2].T_map_camera for r in refined]
         apart = self._distinct_from_all([c.T_map_camera for c in candidates], done)
