@@ -16,6 +16,7 @@ import numpy as np
 import small_gicp
 
 from ..errors import InvalidArgument
+from ..geometry import transform_points
 from .color_gicp import ColorGicpTarget, color_gicp, prepare_cloud, rgb_to_lab
 from .grid_gicp import MapNormals, gicp, plane_normals
 from .point_tree import PointTree, tree_order
@@ -280,8 +281,7 @@ class RefineMap:
 
     def _near_map(self, xyz_camera: np.ndarray, T_map_camera: np.ndarray, reach_m: float) -> np.ndarray:
         """The points of xyz_camera ((n, 3), camera frame) within reach_m of the map at T_map_camera."""
-        d, _ = self.fit_tree.query(xyz_camera @ T_map_camera[:3, :3].T + T_map_camera[:3, 3], k=1,
-                                   distance_upper_bound=reach_m)
+        d, _ = self.fit_tree.query(transform_points(T_map_camera, xyz_camera), k=1, distance_upper_bound=reach_m)
         return xyz_camera[np.isfinite(d)]
 
     def _refine_on_grid(self, points: FramePoints, T_init: np.ndarray, *, epsilon: float, source_voxel_m: float,
