@@ -593,8 +593,7 @@ class Localizer:
                 out.T_map_camera, scan.zbuf, scan.K)
             if scan.view is not None:
                 # Along the frame's rays the map in front of the measured depth already counts against the pose.
-                renders[out] = scan.view.render(self.field, out.T_map_camera)[0]
-                return float(scan.view.agreement(renders[out])[0]), out, c, see
+                return float(scan.view.agreement(self._render_of(scan, renders, out))[0]), out, c, see
             # A pose at which the frame sees through the map ranks below one at which it does not, whatever its
             # fit: the same factor as in the confidence.
             return self._agreement_score(out.T_map_camera, scan) * max(0.0, 1.0 - see / mc.max_see_through), out, c, see
