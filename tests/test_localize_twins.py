@@ -277,6 +277,59 @@ def test_a_copy_a_little_behind_the_answer_is_refined_once(twin_rooms_dir: Path,
     assert promote([0.15])[0] == []  # beyond the contender margin: not the same view
 
 
+@pytest.mark.realdata
+def test_a_copy_that_wins_has_its_copies_looked_at_only_in_the_rooms_that_stood(twin_rooms_dir: Path,
+                                                                                 twin_shared_view) -> None:
+    """`_twin_views(among=...)` looks at the copies in the rooms named only; when a promoted copy wins,
+    `_promote_twins` looks again at the rooms whose copies stood from the earlier pose, not at every copy."""
+    from cadreg.localize.refine import RefineOutcome
+    from cadreg.localize.stages import Candidate, StageTimer
+    from cadreg.result import Diagnostics, Hypothesis
+    from tracking_rooms import ROOM_B_OFFSET_M
+
+    loc = Localizer.from_site(Site.load(twin_rooms_dir))
+    frame, T_a = twin_shared_view
+    diag = Diagnostics(site_id="s", bundle_version="v")
+    scan = loc._scan(frame, diag, StageTimer(diag.stage_ms))
+    to_b = np.eye(4)
+    to_b[0, 3] = ROOM_B_OFFSET_M
+    start = loc._roi_region(T_a, scan.center_camera)
+
+    def looked(among):
+        candidates = [Candidate(T_a, 0.8, Hypothesis(T_a, 0.0, 0.0, 0.0, 0.8), np.zeros(0, np.int64))]
+        return loc._twin_views(scan, T_a, scan.center_camera, candidates, Renders(), 1, 0.8, among=among)
+
+    everywhere = looked(None)
+    assert [loc._roi_region(t[1].T_map_camera, scan.center_camera) for t in everywhere] == [1 - start]
+    assert looked({1 - start})[0][0] == everywhere[0][0]
+    assert looked(set()) == [] and looked({start}) == []
+
+    def entry(T, score):
+        c = Candidate(T, score, Hypothesis(T, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64))
+        return score, RefineOutcome(T, None, 1, True, "small_gicp"), c, 0.0
+
+    aside = np.eye(4)
+    aside[1, 3] = 0.3
+    winner = entry(T_a, 0.8)
+    # a copy in room b that shows the frame better (promoted, and it wins), and one more pose in room a standing
+    twins = [entry(to_b @ T_a, 0.85), entry(aside @ T_a, 0.78)]
+    asked = []
+
+    def twin_views(*args, among=None):
+        asked.append(among)
+        return []
+
+    loc._twin_views = twin_views
+    renders = Renders()
+    renders[winner[1]] = scan.view.render(loc.field, T_a)[0]
+    refined, candidates = [winner], [winner[2]]
+    loc._promote_twins(scan, refined, list(twins), lambda c: (0.86, RefineOutcome(c.T_map_camera, None, 1, True,
+                                                                                  "small_gicp"), c, 0.0),
+                       candidates, renders, scan.center_camera)
+    assert refined[0][2] is twins[0][2]
+    assert asked == [{loc._roi_region(aside @ T_a, scan.center_camera)}]
+
+
 def test_a_render_belongs_to_its_outcome_not_to_an_id_a_discarded_one_freed() -> None:
     """`Renders`: the refine stage discards outcomes (copies the twin check replaces); keyed by a bare id, a new
     outcome could take a discarded one's id and read its render as its own."""
