@@ -833,9 +833,11 @@ class Localizer:
         rendered = scan.view.render_completing(self.field, T, scan.view.thinned_rays(TWIN_THIN_STEP), thin[near])
         score = scan.view.agreement(rendered)
         out = []
+        carried_all = self.twins.carry_all(assignment, copies)
+        regions = self.maps.indices_at(T[:, :3, 3])
         for k, T_k in enumerate(T.copy()):  # one array per pose, shared by its outcome and its candidate
-            carried = self.twins.carry(assignment, copies[k][0], copies[k][1])
-            h = Hypothesis(T_k, 0.0, 0.0, 0.0, float(score[k]), source="twin", region=self.region_of(T_k),
+            carried = carried_all[k]
+            h = Hypothesis(T_k, 0.0, 0.0, 0.0, float(score[k]), source="twin", region=self.maps.regions[regions[k]].id,
                            matches=[(int(i), self.graph.ids[n]) for i, n in enumerate(carried) if n >= 0])
             outcome = RefineOutcome(T_k, None, 0, False, "field")
             renders[outcome] = rendered[k]

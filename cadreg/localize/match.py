@@ -268,10 +268,10 @@ def gravity_hypotheses(scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: M
         height = np.broadcast_to(np.asarray(camera_height_m, dtype=np.float64), (len(graph.ids),))[hyp.seed[:, 1]]
         hyp.t = hyp.t - np.outer(hyp.t @ up, up) + np.outer(height, up)
     elif scan_top is not None and len(graph.top):
-        by_top = Hypotheses(hyp.R.copy(), hyp.t.copy(), hyp.seed.copy())
         h_top = graph.top[hyp.seed[:, 1]] - scan_top[hyp.seed[:, 0]]
-        by_top.t = by_top.t - np.outer(by_top.t @ up, up) + np.outer(h_top, up)
-        hyp = Hypotheses.concat([hyp, by_top])
+        t_top = hyp.t - np.outer(hyp.t @ up, up) + np.outer(h_top, up)
+        hyp = Hypotheses(np.concatenate([hyp.R, hyp.R]), np.concatenate([hyp.t, t_top]),
+                         np.concatenate([hyp.seed, hyp.seed]))
     return hyp
 
 

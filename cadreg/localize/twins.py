@@ -65,6 +65,10 @@ class RoomTwins:
         self._level = graph.centroid @ R_level.T
         self._cls = graph.cls
         self._nodes = [np.flatnonzero(node_region == r) for r in range(regions)]
+        # Each region's nodes in one row, -1 after them: the nodes of many copies are gathered at once (`carry_all`).
+        self._rows = np.full((regions, max([len(n) for n in self._nodes], default=0)), -1, dtype=np.int64)
+        for r, n in enumerate(self._nodes):
+            self._rows[r, :len(n)] = n
         self._found: dict[int, list[tuple[int, np.ndarray]]] = {}
         # Boxes are the map's axes: quarter turns about up are turns about z only where up is z (a composed building).
         z_up = bool(np.dot(up, [0.0, 0.0, 1.0]) > 1.0 - 1e-6)
@@ -80,18 +84,26 @@ class RoomTwins:
     def carry(self, nodes: np.ndarray, b: int, T_ba: np.ndarray) -> np.ndarray:
         """Graph node indices (-1: none) moved by T_ba onto their counterparts in region b: the nearest node of b of
         the same class within MATCH_TOLERANCE_M, else -1 (an object that copy lacks)."""
+        return self.carry_all(nodes, [(b, T_ba)])[0]
+
+    def carry_all(self, nodes: np.ndarray, copies: list[tuple[int, np.ndarray]]) -> np.ndarray:
+        """(len(copies), len(nodes)) `carry` of the same nodes into each copy (b, T_ba), at once: the twin check
+        carries a pose's objects into every copy of its room (99 at 100 rooms)."""
         nodes = np.asarray(nodes, dtype=np.int64)
-        out = np.full(len(nodes), -1, dtype=np.int64)
-        nb = self._nodes[b]
+        out = np.full((len(copies), len(nodes)), -1, dtype=np.int64)
+        live = np.flatnonzero(nodes >= 0)
+        if not len(copies) or not len(live) or self._rows.shape[1] == 0:
+            return out
+        T = np.array([T_ba for _, T_ba in copies], dtype=np.float64)
         L = self._R_level
-        for k, n in enumerate(nodes):
-            if n < 0 or not len(nb):
-                continue
-            moved = L @ (T_ba[:3, :3] @ (L.T @ self._level[n]) + T_ba[:3, 3])
-            d = np.linalg.norm(self._level[nb] - moved, axis=1)
-            d[self._cls[nb] != self._cls[n]] = np.inf
-            if d.min() < MATCH_TOLERANCE_M:
-                out[k] = nb[int(np.argmin(d))]
+        src = self._level[nodes[live]] @ L  # (k, 3) back in the map frame
+        moved = (np.einsum("cij,kj->cki", T[:, :3, :3], src) + T[:, None, :3, 3]) @ L.T  # (c, k, 3) level frame
+        rows = self._rows[[b for b, _ in copies]]  # (c, m) each copy's nodes, -1 after them
+        d = np.linalg.norm(self._level[rows][:, None] - moved[:, :, None], axis=3)  # (c, k, m)
+        d[(rows[:, None, :] < 0) | (self._cls[rows][:, None, :] != self._cls[nodes[live]][None, :, None])] = np.inf
+        nearest = np.argmin(d, axis=2)  # (c, k)
+        found = np.take_along_axis(d, nearest[..., None], axis=2)[..., 0] < MATCH_TOLERANCE_M
+        out[:, live] = np.where(found, np.take_along_axis(rows, nearest, axis=1), -1)
         return out
 
     def _pair(self, a: int, b: int) -> np.ndarray | None:
