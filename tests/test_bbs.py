@@ -74,6 +74,42 @@ def test_search_recovers_a_synthetic_pose() -> None:
     assert abs(np.degrees(poses[0, 0]) - 30.0) < 3.1 and np.linalg.norm(poses[0, 1:] - cam) < 0.15
 
 
+def test_nodes_that_tie_at_the_cap_are_cut_evenly_not_in_array_order() -> None:
+    """A building's coarse levels saturate (every frame point finds a surface within a root's cube) and many nodes
+    tie at the node cap. Which of them survive must not depend on their place in the array (yaw-major): cut that way,
+    whole yaws went and a view's pose lived or died by where its yaw fell. Here the coarse levels tie (a map that
+    fills the box as a regular lattice): the leaves come from nearly every yaw searched, and the same search gives
+    the same."""
+    lattice = np.stack(np.meshgrid(*[np.arange(0.0, 3.01, 0.1)] * 2, np.arange(0.0, 1.51, 0.1), indexing="ij"),
+                       axis=-1).reshape(-1, 3)
+    pyr = GridPyramid(DistanceField(lattice, voxel_m=0.05), lattice, np.array([0.0, 0.0, 1.0]), voxel_m=0.1,
+                      levels=2, reach_m=1.0, margin_m=0.0)
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-0.2, 0.2, (40, 3))
+    yaws = np.radians(np.arange(0.0, 360.0, 10.0))
+    poses, scores, stats = pyr.search(points, yaws, max_nodes=400, keep_ratio=0.5)
+    assert stats.capped
+    searched = {int(round(y)) % 360 for y in np.degrees(poses[:, 0])}
+    assert len(searched) >= 0.9 * len(yaws)
+    again = pyr.search(points, yaws, max_nodes=400, keep_ratio=0.5)
+    assert np.array_equal(poses, again[0]) and np.array_equal(scores, again[1])
+
+
+def test_highest_keeps_the_highest_values_and_a_random_choice_of_the_tied() -> None:
+    from cadreg.localize.bbs import best_first, highest
+
+    values = np.array([5, 3, 3, 3, 1, 9, 3, 3])
+    for count in range(len(values) + 2):
+        kept = highest(values, count, np.random.default_rng(0))
+        assert len(set(kept.tolist())) == len(kept) == min(count, len(values))
+        assert sorted(values[kept].tolist()) == sorted(values.tolist())[::-1][:len(kept)][::-1]
+    # the tied 3s kept vary with the generator's draw, not with their place in the array
+    choices = {tuple(sorted(highest(values, 4, np.random.default_rng(seed)).tolist())) for seed in range(20)}
+    assert len(choices) > 3
+    order = best_first(values, np.random.default_rng(0))
+    assert sorted(order.tolist()) == list(range(len(values))) and np.all(np.diff(values[order]) <= 0)
+
+
 def test_yaw_candidates_contain_the_true_yaw_of_a_manhattan_view() -> None:
     rng = np.random.default_rng(2)
     map_normals = np.vstack([np.tile([1.0, 0, 0], (400, 1)), np.tile([0, 1.0, 0], (200, 1))])

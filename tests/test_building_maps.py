@@ -189,15 +189,19 @@ def test_a_buildings_label_free_search_keeps_the_regions_node_budget(twin_rooms_
     frame, _ = twin_shared_view
     site = Site.load(twin_rooms_dir)
 
-    def search_note(label_free_nodes: int, building_nodes: int) -> str:
+    def search_note(label_free_nodes: int, building_nodes: int, per_region: int = 0) -> str:
         config = LocalizeConfig(label_free=LabelFreeConfig(max_nodes=label_free_nodes),
-                                regions=RegionConfig(search_max_nodes=building_nodes))
+                                regions=RegionConfig(search_max_nodes=building_nodes,
+                                                     search_nodes_per_region=per_region))
         notes = Localizer.from_site(site, config).localize(replace(frame, labels=None)).diagnostics.notes
         return next(n for n in notes if n.startswith("label-free search"))
 
     # the building's budget (regions.search_max_nodes) bounds the search, not the one-room one (label_free.max_nodes)
     assert "node cap reached" in search_note(100_000, 10)
     assert "node cap reached" not in search_note(10, 100_000)
+    # ... or, when more, regions.search_nodes_per_region for each of the regions the search box covers (both here)
+    assert "node cap reached" in search_note(10, 10, per_region=100)
+    assert "node cap reached" not in search_note(10, 10, per_region=50_000)
 
 
 def test_site_json_describes_the_field(twin_rooms_dir: Path) -> None:

@@ -1279,9 +1279,12 @@ class Localizer:
         yaws = yaw_candidates(normals @ R_up.T, map_hist, step_deg=lf.yaw_step_deg)
         labelled_floor = floor.source == "floor" and floor.height_m is not None
         points_level = scan.down.xyz[pick] @ R_up.T
-        max_nodes = lf.max_nodes if len(self.maps) == 1 else self.config.regions.search_max_nodes
+        rc = self.config.regions
         found = []
-        for box, floor_m in self._search_boxes(scan, pyr.R_level_map, rooms):
+        for box, floor_m, covered in self._search_boxes(scan, pyr.R_level_map, rooms):
+            # The budget grows with the rooms the box covers: their coarse levels tie (`bbs.highest`).
+            max_nodes = lf.max_nodes if len(self.maps) == 1 else max(rc.search_max_nodes,
+                                                                      rc.search_nodes_per_region * covered)
             z_range = None
             if labelled_floor and floor_m is not None:
                 # A labelled floor gives the camera's height: only a band about it is searched.
@@ -1315,25 +1318,28 @@ class Localizer:
         return hyp if len(hyp) else None
 
     def _search_boxes(self, scan: Scan, R_level_map: np.ndarray,
-                      rooms: list[Region]) -> list[tuple[np.ndarray | None, float | None]]:
-        """(box, floor) of each part of the site the label-free search covers: the box (level frame, (2, 3)
-        corners) of camera positions, or None for the whole site, and the floor height along up under it, None
-        where the regions under it do not share one. One per region the client named, or the client's ball;
-        without a search region one per room of `rooms`, or the whole site when there are none."""
+                      rooms: list[Region]) -> list[tuple[np.ndarray | None, float | None, int]]:
+        """(box, floor, regions) of each part of the site the label-free search covers: the box (level frame,
+        (2, 3) corners) of camera positions, or None for the whole site; the floor height along up under it, None
+        where the regions under it do not share one; and how many regions' boxes it meets. One per region the client
+        named, or the client's ball; without a search region one per room of `rooms`, or the whole site when there
+        are none."""
         if scan.search is None and not rooms:
-            return [(None, self._shared_floor(self.maps.regions))]
+            return [(None, self._shared_floor(self.maps.regions), len(self.maps))]
         if scan.search is None or scan.search.region_ids:
             chosen = rooms if scan.search is None else scan.search.resolve(self.maps.regions)
-            boxes = [(np.stack([r.bounds[0] - CAMERA_MARGIN_M, r.bounds[1] + CAMERA_MARGIN_M]), self._shared_floor([r]))
+            boxes = [(np.stack([r.bounds[0] - CAMERA_MARGIN_M, r.bounds[1] + CAMERA_MARGIN_M]), self._shared_floor([r]), 1)
                      for r in chosen]
         else:
-            ball = np.stack([scan.search.center - scan.search.radius_m, scan.search.center + scan.search.radius_m])
-            boxes = [(ball, self._shared_floor(self.maps.regions))]
+            lo, hi = scan.search.center - scan.search.radius_m, scan.search.center + scan.search.radius_m
+            met = sum(bool(np.all(r.bounds[0][:2] <= hi[:2]) and np.all(lo[:2] <= r.bounds[1][:2]))
+                      for r in self.maps.regions)
+            boxes = [(np.stack([lo, hi]), self._shared_floor(self.maps.regions), max(met, 1))]
         out = []
-        for (lo, hi), floor_m in boxes:
+        for (lo, hi), floor_m, covered in boxes:
             corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
             level = corners @ R_level_map.T
-            out.append((np.stack([level.min(axis=0), level.max(axis=0)]), floor_m))
+            out.append((np.stack([level.min(axis=0), level.max(axis=0)]), floor_m, covered))
         return out
 
     def _shared_floor(self, regions: list[Region]) -> float | None:
