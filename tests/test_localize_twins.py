@@ -224,6 +224,31 @@ def test_the_copies_of_a_pose_the_objects_put_first_are_looked_at(scene0470_site
     assert loc._shows_objects(shared_scan, T_shared, copies).tolist() == [True, True]
 
 
+def _shared_view_scan(twin_rooms_dir: Path, twin_shared_view):
+    """(localizer of the two-room site, the shared view's Scan, its pose in room "a", the move from room "a" to
+    "b") for tests that drive the refine stage's steps by hand."""
+    from cadreg.localize.stages import StageTimer
+    from cadreg.result import Diagnostics
+    from tracking_rooms import ROOM_B_OFFSET_M
+
+    loc = Localizer.from_site(Site.load(twin_rooms_dir))
+    frame, T_a = twin_shared_view
+    diag = Diagnostics(site_id="s", bundle_version="v")
+    to_b = np.eye(4)
+    to_b[0, 3] = ROOM_B_OFFSET_M
+    return loc, loc._scan(frame, diag, StageTimer(diag.stage_ms)), T_a, to_b
+
+
+def _refined_entry(T: np.ndarray, score: float) -> tuple:
+    """A refine-stage entry (view agreement, outcome, candidate, see-through) at pose T."""
+    from cadreg.localize.refine import RefineOutcome
+    from cadreg.localize.stages import Candidate
+    from cadreg.result import Hypothesis
+
+    c = Candidate(T, score, Hypothesis(T, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64))
+    return score, RefineOutcome(T, None, 1, True, "small_gicp"), c, 0.0
+
+
 @pytest.mark.realdata
 def test_a_copy_a_little_behind_the_answer_is_refined_once(twin_rooms_dir: Path, twin_shared_view) -> None:
     """`Localizer._promote_twins`: a copy of the winner's view is its pose moved into the copy's room, refined in
@@ -231,22 +256,11 @@ def test_a_copy_a_little_behind_the_answer_is_refined_once(twin_rooms_dir: Path,
     ambiguity margin) with no copy closer is refined, once a frame, and stands as a rival when its refinement
     brings it within the ambiguity margin. A copy already within the margin, or far behind, is not refined."""
     from cadreg.localize.refine import RefineOutcome
-    from cadreg.localize.stages import Candidate, StageTimer
-    from cadreg.result import Diagnostics, Hypothesis
-    from tracking_rooms import ROOM_B_OFFSET_M
 
-    loc = Localizer.from_site(Site.load(twin_rooms_dir))
-    frame, T_a = twin_shared_view
-    diag = Diagnostics(site_id="s", bundle_version="v")
-    scan = loc._scan(frame, diag, StageTimer(diag.stage_ms))
-    to_b = np.eye(4)
-    to_b[0, 3] = ROOM_B_OFFSET_M
+    loc, scan, T_a, to_b = _shared_view_scan(twin_rooms_dir, twin_shared_view)
     aside = np.eye(4)
     aside[1, 3] = 0.5
-
-    def entry(T, score):
-        c = Candidate(T, score, Hypothesis(T, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64))
-        return score, RefineOutcome(T, None, 1, True, "small_gicp"), c, 0.0
+    entry = _refined_entry
 
     def promote(behind: list[float]):
         """(refine calls, refined, copies left, renders, candidates, copies given) for copies in room "b"
@@ -283,20 +297,12 @@ def test_a_copy_that_wins_has_its_copies_looked_at_only_in_the_rooms_that_stood(
     """`_twin_views(among=...)` looks at the copies in the rooms named only; when a promoted copy wins,
     `_promote_twins` looks again at the rooms whose copies stood from the earlier pose, not at every copy."""
     from cadreg.localize.refine import RefineOutcome
-    from cadreg.localize.stages import Candidate, StageTimer
-    from cadreg.result import Diagnostics, Hypothesis
-    from tracking_rooms import ROOM_B_OFFSET_M
 
-    loc = Localizer.from_site(Site.load(twin_rooms_dir))
-    frame, T_a = twin_shared_view
-    diag = Diagnostics(site_id="s", bundle_version="v")
-    scan = loc._scan(frame, diag, StageTimer(diag.stage_ms))
-    to_b = np.eye(4)
-    to_b[0, 3] = ROOM_B_OFFSET_M
+    loc, scan, T_a, to_b = _shared_view_scan(twin_rooms_dir, twin_shared_view)
     start = loc._roi_region(T_a, scan.center_camera)
 
     def looked(among):
-        candidates = [Candidate(T_a, 0.8, Hypothesis(T_a, 0.0, 0.0, 0.0, 0.8), np.zeros(0, np.int64))]
+        candidates = [_refined_entry(T_a, 0.8)[2]]
         return loc._twin_views(scan, T_a, scan.center_camera, candidates, Renders(), 1, 0.8, among=among)
 
     everywhere = looked(None)
@@ -304,15 +310,11 @@ def test_a_copy_that_wins_has_its_copies_looked_at_only_in_the_rooms_that_stood(
     assert looked({1 - start})[0][0] == everywhere[0][0]
     assert looked(set()) == [] and looked({start}) == []
 
-    def entry(T, score):
-        c = Candidate(T, score, Hypothesis(T, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64))
-        return score, RefineOutcome(T, None, 1, True, "small_gicp"), c, 0.0
-
     aside = np.eye(4)
     aside[1, 3] = 0.3
-    winner = entry(T_a, 0.8)
+    winner = _refined_entry(T_a, 0.8)
     # a copy in room b that shows the frame better (promoted, and it wins), and one more pose in room a standing
-    twins = [entry(to_b @ T_a, 0.85), entry(aside @ T_a, 0.78)]
+    twins = [_refined_entry(to_b @ T_a, 0.85), _refined_entry(aside @ T_a, 0.78)]
     asked = []
 
     def twin_views(*args, among=None):
