@@ -336,9 +336,10 @@ class RegionConfig(_Section):
     search_max_nodes: int = Field(3000, ge=10, description="the label-free search's nodes kept per level in a "
                                   "building (LabelFreeConfig.max_nodes in one room), at least: a building's search box "
                                   "holds many rooms, and at 1200 the search cut its way past the view's room")
-    search_nodes_per_region: int = Field(80, ge=0, description="... and this many per region the search box covers, "
-                                         "when that is more: a building's coarse levels tie (`bbs.highest`), the more "
-                                         "the larger it is (at 100 rooms 8000 a level)")
+    search_nodes_per_region: int = Field(80, ge=0, description="the label-free search's nodes kept per level in a "
+                                         "building for each region its search box covers, when that is more than "
+                                         "search_max_nodes: a building's coarse levels tie (`bbs.highest`), the more "
+                                         "the larger it is (8000 a level at 100 rooms)")
     object_tiebreak_share: float = Field(0.05, gt=0, le=1, description="poses that look the same along the frame's "
                                          "rays are told apart by the frame's labelled objects when one explains this "
                                          "share of the frame's view (pixels) more than every other "
