@@ -143,6 +143,29 @@ def test_the_label_free_search_stays_in_the_region(localizer: Localizer, twin_sh
         assert _near(r.T_map_camera, ROOM_B @ T_true)
 
 
+def test_the_label_free_search_box_counts_the_regions_it_covers(localizer: Localizer, twin_shared_view) -> None:
+    """A building's label-free search keeps more nodes a level the more regions its box covers
+    (`regions.search_nodes_per_region`): the whole building, a named region, a ball in one room or over both."""
+    from cadreg.localize.stages import StageTimer
+    from cadreg.result import Diagnostics
+
+    frame, T_true = twin_shared_view
+    R_level_map = localizer.pyramid()[0].R_level_map
+
+    def covered(search_region, rooms=()):
+        diag = Diagnostics(site_id="s", bundle_version="v")
+        scan = localizer._scan(replace(frame, search_region=search_region), diag, StageTimer(diag.stage_ms))
+        return [c for _, _, c in localizer._search_boxes(scan, R_level_map, list(rooms))]
+
+    a, b = localizer.maps.regions
+    assert covered(None) == [2]
+    assert covered(None, [a, b]) == [1, 1]
+    assert covered(SearchRegion(region_ids=("b",))) == [1]
+    assert covered(SearchRegion(center=(ROOM_B @ T_true)[:3, 3], radius_m=0.5)) == [1]
+    between = 0.5 * (a.bounds.mean(axis=0) + b.bounds.mean(axis=0))
+    assert covered(SearchRegion(center=between, radius_m=float(np.linalg.norm(b.bounds[1] - a.bounds[0])))) == [2]
+
+
 # --- over the wire ---------------------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
