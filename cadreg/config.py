@@ -231,8 +231,10 @@ class LabelFreeConfig(_Section):
                            "of the search (the grid is padded by it: memory grows with it)")
     camera_margin_m: float = Field(1.0, ge=0, description="the camera may stand this far outside the box of the map "
                                    "(a map that holds only what lies ahead of the camera)")
-    max_cells: int = Field(8_000_000, ge=10_000, description="cells of one pyramid level at most (one byte each); "
-                           "the cell grows until the map fits")
+    max_cells: int = Field(32_000_000, ge=10_000, description="cells of one pyramid level at most (one byte each, "
+                           "levels + 1 bytes a cell in all); the cell grows by a quarter until the map fits. A leaf "
+                           "coarser than τ loses poses (its sample lies up to a cell off the pose, and the score "
+                           "falls within τ): 32 M cells keep a 100-room building at 12.5 cm, where 8 M made 19.5")
     points: int = Field(128, ge=20, description="frame points scored per node: the cost of a node")
     yaw_step_deg: float = Field(3.0, gt=0, le=30, description="yaw step of the search")
     max_nodes: int = Field(1200, ge=10, description="nodes kept per level, highest bounds first: bounds the cost "

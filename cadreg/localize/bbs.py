@@ -60,20 +60,14 @@ class GridPyramid:
 
     def __init__(self, field: DistanceField, map_xyz: np.ndarray, up: np.ndarray, *, voxel_m: float = 0.1,
                  levels: int = 4, tau_m: float = 0.15, reach_m: float = 4.0, margin_m: float = 1.0,
-                 max_cells: int = 8_000_000) -> None:
+                 max_cells: int = 32_000_000) -> None:
         self.R_level_map = rotation_between(np.asarray(up, float), np.array([0.0, 0.0, 1.0]))
         p = np.asarray(map_xyz, dtype=np.float64) @ self.R_level_map.T
         lo, hi = p.min(axis=0), p.max(axis=0)
         self.levels = int(levels)
-        span = 2 ** self.levels
-        while True:
-            self.margin = int(np.ceil(margin_m / voxel_m))
-            self.pad = int(np.ceil(reach_m / voxel_m)) + 1 + self.margin
-            inner = np.ceil((hi - lo) / voxel_m).astype(np.int64) + 1
-            dims = inner + 2 * self.pad + span
-            if np.prod(dims) <= max_cells:
-                break
-            voxel_m *= 1.25
+        voxel_m = pyramid_voxel(hi - lo, voxel_m=voxel_m, levels=levels, reach_m=reach_m, margin_m=margin_m,
+                                max_cells=max_cells)
+        self.margin, self.pad, inner, dims = _layout(hi - lo, voxel_m, levels, reach_m, margin_m)
         self.voxel_m = float(voxel_m)
         self.reach_m = float(reach_m)
         self.dims = dims
@@ -239,6 +233,25 @@ class GridPyramid:
         hyp = Hypotheses(R[keep], t[keep], np.full((len(keep), 2), -1, dtype=np.int64))
         hyp.geometric = scores[keep]
         return hyp
+
+
+def pyramid_voxel(extent_m: np.ndarray, *, voxel_m: float, levels: int, reach_m: float, margin_m: float,
+                  max_cells: int) -> float:
+    """The finest cell of a map's pyramid: voxel_m, grown by a quarter at a time until a level of the map's
+    extent ((3,) metres along the level frame's axes, `GridPyramid`'s padding added) holds at most max_cells."""
+    while np.prod(_layout(np.asarray(extent_m, dtype=np.float64), voxel_m, levels, reach_m, margin_m)[3]) > max_cells:
+        voxel_m *= 1.25
+    return float(voxel_m)
+
+
+def _layout(extent_m: np.ndarray, voxel_m: float, levels: int, reach_m: float,
+            margin_m: float) -> tuple[int, int, np.ndarray, np.ndarray]:
+    """(margin, pad, inner, dims) in cells of a pyramid over a map of this extent at this voxel: the camera's
+    margin outside the map, the padding a side (the frame's reach and the margin), the map's cells and the grid's."""
+    margin = int(np.ceil(margin_m / voxel_m))
+    pad = int(np.ceil(reach_m / voxel_m)) + 1 + margin
+    inner = np.ceil(extent_m / voxel_m).astype(np.int64) + 1
+    return margin, pad, inner, inner + 2 * pad + 2 ** int(levels)
 
 
 def highest(values: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
