@@ -295,7 +295,9 @@ def test_a_copy_a_little_behind_the_answer_is_refined_once(twin_rooms_dir: Path,
 def test_a_copy_that_wins_has_its_copies_looked_at_only_in_the_rooms_that_stood(twin_rooms_dir: Path,
                                                                                  twin_shared_view) -> None:
     """`_twin_views(among=...)` looks at the copies in the rooms named only; when a promoted copy wins,
-    `_promote_twins` looks again at the rooms whose copies stood from the earlier pose, not at every copy."""
+    `_promote_twins` looks again at the rooms whose copies stood from the earlier pose, not at every copy; and not
+    at all when the copy's refinement left it where the twin check put it (its copies' poses are the ones looked
+    at)."""
     from cadreg.localize.refine import RefineOutcome
 
     loc, scan, T_a, to_b = _shared_view_scan(twin_rooms_dir, twin_shared_view)
@@ -322,14 +324,25 @@ def test_a_copy_that_wins_has_its_copies_looked_at_only_in_the_rooms_that_stood(
         return []
 
     loc._twin_views = twin_views
-    renders = Renders()
-    renders[winner[1]] = scan.view.render(loc.field, T_a)[0]
-    refined, candidates = [winner], [winner[2]]
-    loc._promote_twins(scan, refined, list(twins), lambda c: (0.86, RefineOutcome(c.T_map_camera, None, 1, True,
-                                                                                  "small_gicp"), c, 0.0),
-                       candidates, renders, scan.center_camera)
-    assert refined[0][2] is twins[0][2]
+
+    def promote(moved_m: float) -> list:
+        renders = Renders()
+        renders[winner[1]] = scan.view.render(loc.field, T_a)[0]
+        refined, candidates = [winner], [winner[2]]
+        nudge = np.eye(4)
+        nudge[0, 3] = moved_m
+        left = loc._promote_twins(scan, refined, list(twins), lambda c: (
+            0.86, RefineOutcome(nudge @ c.T_map_camera, None, 1, True, "small_gicp"), c, 0.0), candidates, renders,
+            scan.center_camera)
+        assert refined[0][2] is twins[0][2]
+        return left + [r[2] for r in refined]
+
+    promote(0.02)  # refined 2 cm off the copy's pose: its copies are looked at again
     assert asked == [{loc._roi_region(aside @ T_a, scan.center_camera)}]
+    asked.clear()
+    # 1 mm off: not looked at again, and the copy that stood stays (here refined next: within the contender margin)
+    seen = promote(0.001)
+    assert asked == [] and any(k is twins[1][2] for k in seen)
 
 
 def test_a_render_belongs_to_its_outcome_not_to_an_id_a_discarded_one_freed() -> None:
