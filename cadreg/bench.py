@@ -18,6 +18,10 @@ Trust: per method the summary also gives `ok` precision (share of `ok` answers w
 wrong `ok` answers and success by confidence band (`CONFIDENCE_BANDS`, a reliability table: a calibrated
 confidence has success rising with the band). The baselines' confidence is their ICP fitness.
 
+Label noise (`label_noise.py`): the labelled methods can be given a segmenter's errors in the frames' labels
+(misregistered and bleeding boundaries, swapped, missed and false classes), seeded per frame, to see how the
+labelled path fares with labels not its own map's.
+
 Buildings (`cadreg render --layout` writes FRAMES/views.json): per frame the room it was taken in and the rooms
 that repeat it (the oracle of cadreg/render/building.py). With it the summary splits the frames: `unique` (views
 no other room repeats: success @5cm/5° is what counts) and `repeated` (the right answer is `ambiguous` with the
@@ -41,6 +45,8 @@ from scipy.spatial.transform import Rotation
 from .errors import InvalidArgument
 from .frame import Frame
 from .geometry import invert_T, pose_errors, transform_points
+from .label_noise import LabelNoise, corrupt_labels
+from .labels import is_object_class
 from .localize.localizer import Localizer
 from .localize.points import frame_to_points
 from .localize.refine import REFINE_METHODS
@@ -150,12 +156,24 @@ def perturb(T: np.ndarray, rng: np.random.Generator, *, translation_m: float = 0
 class Bench:
     """Runs methods on frames; one Localizer serves every cadreg method."""
 
-    def __init__(self, site, localizer: Localizer, *, seed: int = 0) -> None:
+    def __init__(self, site, localizer: Localizer, *, seed: int = 0, label_noise: LabelNoise | None = None) -> None:
         self.site = site
         self.localizer = localizer
         self.seed = seed
+        self.label_noise = label_noise
         self._fit_cache: tuple | None = None
         self._kiss = None
+
+    def labels_of(self, index: int, frame: Frame) -> np.ndarray | None:
+        """The labels a labelled method is given: the frame's, with `label_noise`'s errors when set (drawn from a
+        generator seeded by the bench's seed and the frame's index, from the object classes the site's graph
+        holds, in the frame's label set)."""
+        if self.label_noise is None or frame.labels is None:
+            return frame.labels
+        known = {node.cls for node in self.site.graph.nodes}
+        ids = np.array(sorted(i for i, c in self.site.label_maps.get(frame.label_set, {}).items()
+                              if is_object_class(c) and c in known), dtype=np.int64)
+        return corrupt_labels(frame.labels, self.label_noise, ids, np.random.default_rng([self.seed, index, 1]))
 
     def kiss(self):
         """The KISS-Matcher peer (InvalidArgument with the install hint when the extra is missing)."""
@@ -177,7 +195,7 @@ class Bench:
             t0 = time.perf_counter()
         if method.startswith("cadreg"):
             refine = method.split(":", 1)[1] if ":" in method else None
-            f = replace(frame, labels=None) if method == "cadreg-nolabels" else frame
+            f = replace(frame, labels=None if method == "cadreg-nolabels" else self.labels_of(index, frame))
             res = loc.localize(f, method=refine)
             T, status, stage_ms = res.T_map_camera, res.status.value, dict(res.diagnostics.stage_ms)
             trust = float(res.confidence)
@@ -357,18 +375,20 @@ def summarize(outcomes: list[FrameOutcome]) -> dict:
 def run_bench(site, frames, methods: list[str], *, localizer: Localizer | None = None, limit: int | None = None,
               seed: int = 0, progress: Callable[[int, int], None] | None = None,
               warn: Callable[[str], None] | None = None, views: dict[int, ViewTruth] | None = None,
-              truth: dict[int, np.ndarray] | None = None) -> dict:
+              truth: dict[int, np.ndarray] | None = None, label_noise: LabelNoise | None = None) -> dict:
     """Run `methods` on every frame of `frames` (a RecordedFrames) that has a ground-truth pose. `views`: what a
     building's views.json says of the frames (`views_from_doc`), for the unique / repeated figures. `truth`: frame
     index -> T_map_camera to judge by instead of the recorded poses (where the map puts each frame, when a
     dataset's poses drift from the map: `site.fuse.pose_offset_by_window`); frames it lacks are skipped.
+    `label_noise`: a segmenter's errors in the labels the labelled methods are given (`Bench.labels_of`).
 
-    Returns {"frames": N, "skipped": [...], "methods": {name: summary}}.
+    Returns {"frames": N, "skipped": [...], "methods": {name: summary}}, and "label_noise" (its settings) when
+    given.
     """
     for m in methods:
         check_method(m)
     localizer = localizer or Localizer.from_site(site)
-    bench = Bench(site, localizer, seed=seed)
+    bench = Bench(site, localizer, seed=seed, label_noise=label_noise)
     if "kiss-matcher" in methods:
         bench.kiss()  # a missing extra fails here, with its install hint, before any frame runs
     indices = list(frames.indices)
@@ -398,7 +418,10 @@ def run_bench(site, frames, methods: list[str], *, localizer: Localizer | None =
         if progress:
             progress(k + 1, len(indices))
     n = len(indices) - len(skipped)
-    return {"frames": n, "skipped": skipped, "methods": {m: summarize(o) for m, o in outcomes.items()}}
+    report = {"frames": n, "skipped": skipped, "methods": {m: summarize(o) for m, o in outcomes.items()}}
+    if label_noise is not None:
+        report["label_noise"] = label_noise.as_dict()
+    return report
 
 
 def format_table(report: dict) -> str:
@@ -406,7 +429,9 @@ def format_table(report: dict) -> str:
     def f(x, scale=1.0, digits=1):
         return "-" if x is None else f"{x * scale:.{digits}f}"
 
-    lines = [f"frames: {report['frames']}" + (f" (skipped without pose: {len(report['skipped'])})" if report["skipped"] else "")]
+    lines = [f"frames: {report['frames']}" + (f" (skipped without pose: {len(report['skipped'])})" if report["skipped"] else "")
+             + ("" if "label_noise" not in report else "; labels with noise "
+                + ", ".join(f"{k} {v}" for k, v in report["label_noise"].items() if v))]
     head = (f"{'method':34s} {'@5cm/5°':>8s} {'@10cm/10°':>9s} {'med t cm':>8s} {'p90 t cm':>8s} {'med r °':>7s} "
             f"{'p90 r °':>7s} {'med ms':>7s} {'p90 ms':>7s} {'p99 ms':>7s} {'max ms':>7s} {'ok prec':>7s} {'bad ok':>6s}  statuses")
     lines.append(head)

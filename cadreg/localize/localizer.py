@@ -99,6 +99,10 @@ TWIN_SCREEN_MARGIN = 0.3
 # rays: a few hundredths of sampling noise).
 TWIN_THIN_STEP = 2
 TWIN_THIN_SLACK = 0.1
+# A refinement settles into the basin it starts in: a candidate farther than this from every refined pose is
+# another start (`_near_contender`), even when it is no distinct hypothesis (MatchConfig.distinct_translation_m).
+NEAR_REACH_M = 0.1
+NEAR_REACH_DEG = 5.0
 # Copies that show the frame better than the answer are refined, best first, at most this many a frame.
 TWIN_PROMOTIONS = 3
 # A promoted copy that wins and whose refinement moved it less than this from where the twin check put it has the
@@ -564,7 +568,11 @@ class Localizer:
         if scan.view is None:
             contenders = [best] + [c for c in candidates[1:mc.refine_contenders] if best.score - c.score < mc.ambiguity_margin
                                    and self._distinct(c.T_map_camera, best.T_map_camera)]
+            near = self._near_contender(candidates, contenders)
+            if near is not None:
+                contenders.append(near)
         else:
+            near = None
             contenders = self._view_contenders(candidates, scan.center_camera)
         # Region of interest (paper §2.5, radius γ about the frame's centre under the hypothesis). The map's search
         # structures are built once per site rather than cropped per frame; leaving out the frame points farther
@@ -608,7 +616,12 @@ class Localizer:
                 return float(scan.view.agreement(self._render_of(scan, renders, out))[0]), out, c, see
             # A pose at which the frame sees through the map ranks below one at which it does not, whatever its
             # fit: the same factor as in the confidence.
-            return self._agreement_score(out.T_map_camera, scan) * max(0.0, 1.0 - see / mc.max_see_through), out, c, see
+            score = self._agreement_score(out.T_map_camera, scan) * max(0.0, 1.0 - see / mc.max_see_through)
+            if near is not None and scan.zbuf is not None:
+                # Two basins of one hypothesis are told apart as the sensor sees them: the labels that ranked them
+                # are what put them side by side (`_near_contender`).
+                score *= maps.view_check.depth_agreement(out.T_map_camera, scan.zbuf, scan.K)
+            return score, out, c, see
 
         refined = [refine(c) for c in contenders]
         taken_next: Candidate | None = None  # the candidate taken after every contender saw through the map
@@ -700,6 +713,27 @@ class Localizer:
         passed_over = winner is taken_next
         return Choice(winner, out, margin, has_rival, fitness, rmse, center_camera, roi_frame_points, see, agreement,
                       coverage, rivals, passed_over)
+
+    def _near_contender(self, candidates: list[Candidate], contenders: list[Candidate]) -> Candidate | None:
+        """In one room: the best candidate within RegionConfig.contender_margin of the best's score that lies beyond
+        the refinement's reach of every contender (NEAR_REACH_M, NEAR_REACH_DEG) though not distinct from the best
+        (MatchConfig.distinct_translation_m): to the graph one hypothesis, to the refinement another basin, and it
+        is refined too, so that the geometry picks between them. A segmenter's labels shift a door's or a
+        whiteboard's centroid along its wall: a scene0470 view of a door, its whiteboard left unlabelled, ranked a
+        pose 26 cm along the wall 0.04 above the right one (depth agreement 0.82 against 0.98), which was never
+        refined, and was answered `ok`, confidence 0.93."""
+        best, margin = candidates[0], self.config.regions.contender_margin
+        refined = np.array([k.T_map_camera for k in contenders])
+        for c in candidates[1:]:
+            if best.score - c.score >= margin:
+                break  # (sorted best first)
+            if any(c is k for k in contenders) or self._distinct(c.T_map_camera, best.T_map_camera):
+                continue
+            beyond = distinct_pairs(c.T_map_camera[None], refined, min_translation_m=NEAR_REACH_M,
+                                    min_rotation_deg=NEAR_REACH_DEG)
+            if beyond.all():
+                return c
+        return None
 
     def _promote_twins(self, scan: Scan, refined: list, twins: list[tuple], refine, candidates: list[Candidate],
                        renders: Renders, center_camera: np.ndarray) -> list[tuple]:
