@@ -18,6 +18,14 @@ REDKITCHEN = SHARED_DATA / "7scenes-redkitchen" / "frames"
 THREEDMATCH = SHARED_DATA / "3dmatch-sample" / "3dmatch" / "seq-01"
 
 
+def scene0470_mesh(scene0470_dir: Path):
+    """The real scene0470 mesh with its NYU40 labels, as the renderer takes it (`render_frames`)."""
+    from cadreg.render.mesh import LabelledMesh
+
+    return LabelledMesh.from_ply(scene0470_dir / "scene0470_00_vh_clean_2.ply",
+                                 scene0470_dir / "scene0470_00_vh_clean_2.labels.ply")
+
+
 @pytest.fixture(scope="session")
 def scene0470_dir() -> Path:
     assert SCENE0470.is_dir(), f"real data missing: {SCENE0470}"

@@ -19,13 +19,12 @@ DESIGN_KEYS = {"success_5cm_5deg", "success_10cm_10deg", "median_translation_m",
 @pytest.fixture(scope="module")
 def frames_dir(scene0470_dir, tmp_path_factory):
     """Three rendered frames of the real mesh; the last one loses its pose file (no ground truth)."""
-    from cadreg.render.mesh import LabelledMesh
+    from conftest import scene0470_mesh
+
     from cadreg.render.sequence import render_frames
 
     out = tmp_path_factory.mktemp("frames") / "scene0470"
-    mesh = LabelledMesh.from_ply(scene0470_dir / "scene0470_00_vh_clean_2.ply",
-                                 scene0470_dir / "scene0470_00_vh_clean_2.labels.ply")
-    render_frames(mesh, out, 3, seed=7)
+    render_frames(scene0470_mesh(scene0470_dir), out, 3, seed=7)
     (out / "pose" / "2.txt").unlink()
     return out
 

@@ -70,13 +70,12 @@ def test_settings_out_of_range_are_refused() -> None:
 @pytest.fixture(scope="module")
 def noisy_renders(scene0470_dir, tmp_path_factory):
     """The first 12 renders of the real mesh with seed 7 (those of the README's scene0470 benchmark)."""
-    from cadreg.render.mesh import LabelledMesh
+    from conftest import scene0470_mesh
+
     from cadreg.render.sequence import render_frames
 
     out = tmp_path_factory.mktemp("noisy") / "scene0470"
-    mesh = LabelledMesh.from_ply(scene0470_dir / "scene0470_00_vh_clean_2.ply",
-                                 scene0470_dir / "scene0470_00_vh_clean_2.labels.ply")
-    render_frames(mesh, out, 12, seed=7)
+    render_frames(scene0470_mesh(scene0470_dir), out, 12, seed=7)
     return out
 
 
