@@ -7,11 +7,12 @@ not turn those into confident wrong answers. Each kind of error, as a segmenter 
 - shift: the whole label image misregistered against depth by up to `shift_px` pixels each way (labels are made
   on colour, which the depth is registered to within a few pixels);
 - bleed: each labelled segment grown over its border by 2 to `bleed_px` pixels, with probability `bleed`;
-- swap: each object class in view replaced, everywhere in the image, by another object class the site knows,
-  with probability `swap` (a chair called a table: it matches the wrong map nodes, the hardest case for a graph);
-- drop: each class in view left unlabelled (0), with probability `drop`;
-- blobs: up to `blobs` discs (radius 10-40 px) of a random object class the site knows: false detections;
-- speckle: this share of the pixels given a random object class the site knows.
+- swap: each class in view that the site's graph holds replaced, everywhere in the image, by another the graph
+  holds, with probability `swap` (a chair called a table: it matches the wrong map nodes, the hardest case for a
+  graph);
+- drop: each class in view not swapped left unlabelled (0), with probability `drop` (walls and floors too);
+- blobs: up to `blobs` discs (radius 10-40 px) of a random class the graph holds: false detections;
+- speckle: this share of the pixels given a random class the graph holds.
 
 Written here: the errors are a benchmark's model of a segmenter, not a library's augmentation (those perturb
 images for training, not label maps by segment). Dilation is scipy's.
@@ -64,7 +65,8 @@ LABEL_NOISE_PRESETS: dict[str, LabelNoise] = {
 def corrupt_labels(labels: np.ndarray, noise: LabelNoise, object_ids: np.ndarray,
                    rng: np.random.Generator) -> np.ndarray:
     """A copy of `labels` ((h, w) label ids, 0 unlabelled) with `noise`'s errors. object_ids : the label ids of the
-    object classes the site knows (what swaps, blobs and speckle draw from; when empty they draw nothing)."""
+    object classes the site's graph holds (what is swapped, and what swaps, blobs and speckle draw from; when empty
+    they draw nothing)."""
     out = np.array(labels, copy=True)
     ids = np.asarray(object_ids, dtype=out.dtype)
     if noise.shift_px:
