@@ -88,9 +88,9 @@ def corrupt_labels(labels: np.ndarray, noise: LabelNoise, object_ids: np.ndarray
     out = swapped
     if ids.size:
         h, w = out.shape
+        yy, xx = np.ogrid[:h, :w]
         for _ in range(int(rng.integers(0, noise.blobs + 1)) if noise.blobs else 0):
             cy, cx, r = rng.integers(0, h), rng.integers(0, w), rng.integers(*BLOB_RADIUS_PX)
-            yy, xx = np.ogrid[:h, :w]
             out[(yy - cy) ** 2 + (xx - cx) ** 2 < r * r] = rng.choice(ids)
         if noise.speckle:
             speck = rng.random(out.shape) < noise.speckle

@@ -723,13 +723,13 @@ class Localizer:
         pose 26 cm along the wall 0.04 above the right one (depth agreement 0.82 against 0.98), which was never
         refined, and was answered `ok`, confidence 0.93."""
         best, margin = candidates[0], self.config.regions.contender_margin
-        refined = np.array([k.T_map_camera for k in contenders])
+        starts = np.array([k.T_map_camera for k in contenders])
         for c in candidates[1:]:
             if best.score - c.score >= margin:
                 break  # (sorted best first)
             if any(c is k for k in contenders) or self._distinct(c.T_map_camera, best.T_map_camera):
                 continue
-            beyond = distinct_pairs(c.T_map_camera[None], refined, min_translation_m=NEAR_REACH_M,
+            beyond = distinct_pairs(c.T_map_camera[None], starts, min_translation_m=NEAR_REACH_M,
                                     min_rotation_deg=NEAR_REACH_DEG)
             if beyond.all():
                 return c

@@ -81,14 +81,11 @@ class RoomTwins:
                               for T in [self._pair(a, b)] if T is not None]
         return self._found[a]
 
-    def carry(self, nodes: np.ndarray, b: int, T_ba: np.ndarray) -> np.ndarray:
-        """Graph node indices (-1: none) moved by T_ba onto their counterparts in region b: the nearest node of b of
-        the same class within MATCH_TOLERANCE_M, else -1 (an object that copy lacks)."""
-        return self.carry_all(nodes, [(b, T_ba)])[0]
-
     def carry_all(self, nodes: np.ndarray, copies: list[tuple[int, np.ndarray]]) -> np.ndarray:
-        """(len(copies), len(nodes)) `carry` of the same nodes into each copy (b, T_ba), at once: the twin check
-        carries a pose's objects into every copy of its room (99 at 100 rooms)."""
+        """(len(copies), len(nodes)) graph node indices (-1: none) of `nodes` moved by each copy's T_ba onto their
+        counterparts in its region b: the nearest node of b of the same class within MATCH_TOLERANCE_M, else -1 (an
+        object that copy lacks). All copies at once: the twin check carries a pose's objects into every copy of its
+        room (99 at 100 rooms)."""
         nodes = np.asarray(nodes, dtype=np.int64)
         out = np.full((len(copies), len(nodes)), -1, dtype=np.int64)
         live = np.flatnonzero(nodes >= 0)
