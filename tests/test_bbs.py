@@ -177,8 +177,10 @@ def test_search_finds_real_7scenes_frames_before_refinement(redkitchen_sparse_si
     assert found >= len(queries) - 1
 
 
-def test_polish_moves_each_hypothesis_to_its_best_neighbour() -> None:
-    """`polish` scores all hypotheses' neighbours in one call; the rule written out per hypothesis gives the same."""
+@pytest.mark.parametrize("later_within", [None, 0.03])
+def test_polish_moves_each_hypothesis_to_its_best_neighbour(later_within: float | None) -> None:
+    """`polish` scores all hypotheses' neighbours in one call; the rule written out per hypothesis gives the same,
+    with the second round only for those the first left within `later_within` of the best."""
     from cadreg.localize.match import Hypotheses, yaw_rotations
     from cadreg.localize.score import score_poses
 
@@ -193,14 +195,20 @@ def test_polish_moves_each_hypothesis_to_its_best_neighbour() -> None:
     t = np.array([2.0, 1.5, 1.0]) + rng.normal(scale=0.06, size=(h, 3))
     up = np.array([0.0, 0.0, 1.0])
     start = score_poses(field, pts, R, t, tau_m=0.1)
-    got = polish(field, pts, Hypotheses(R, t, np.zeros((h, 2), dtype=np.int64)), up, tau_m=0.1)
+    got = polish(field, pts, Hypotheses(R, t, np.zeros((h, 2), dtype=np.int64)), up, tau_m=0.1,
+                 later_within=later_within)
     grid = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], dtype=np.float64)
     R, t = R.copy(), t.copy()
     best = score_poses(field, pts, R, t, tau_m=0.1)
     step_m, step_deg = 0.05, 1.5
-    for _ in range(2):
+    polished_twice = 0
+    for round_ in range(2):
         dR = yaw_rotations(up, np.radians(np.array([-step_deg, 0.0, step_deg])))
+        top = best.max()
         for k in range(h):
+            if round_ == 1 and later_within is not None and best[k] < top - later_within:
+                continue
+            polished_twice += round_
             Rs = np.repeat(np.einsum("yij,jk->yik", dR, R[k]), len(grid), axis=0)
             ts = np.tile(t[k] + grid * step_m, (len(dR), 1))
             s = score_poses(field, pts, Rs, ts, tau_m=0.1)
@@ -209,3 +217,5 @@ def test_polish_moves_each_hypothesis_to_its_best_neighbour() -> None:
         step_m, step_deg = step_m / 2, step_deg / 2
     assert np.allclose(got.R, R) and np.allclose(got.t, t) and np.allclose(got.geometric, best)
     assert np.all(got.geometric >= start) and np.count_nonzero(got.geometric > start) >= h // 2
+    # (the case tests the cut: some hypotheses ended their first round that far below the best, some not)
+    assert polished_twice == h if later_within is None else 0 < polished_twice < h

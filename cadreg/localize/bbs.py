@@ -337,10 +337,12 @@ def map_direction_histogram(normals_level: np.ndarray, *, sample: int = 50000, s
 
 
 def polish(field: DistanceField, points_camera: np.ndarray, hyp: Hypotheses, up: np.ndarray, *, step_m: float = 0.05,
-           step_deg: float = 1.5, rounds: int = 2, tau_m: float = 0.1) -> Hypotheses:
+           step_deg: float = 1.5, rounds: int = 2, tau_m: float = 0.1, later_within: float | None = None) -> Hypotheses:
     """Each hypothesis moved to the best of its neighbours on the exact distance field: yaw ± step_deg and each
     translation axis ± step_m (81 poses), the steps halved each round. The search's leaves are cell corners and
-    yaw steps apart; this brings them within a few centimetres and a degree at the cost of a few hundred lookups."""
+    yaw steps apart; this brings them within a few centimetres and a degree at the cost of a few hundred lookups.
+    later_within : after the first round, only the hypotheses scoring within this of the best are polished further
+    (None: all); the others keep their first round's pose and score."""
     from .match import yaw_rotations
     from .score import score_poses
 
@@ -349,16 +351,19 @@ def polish(field: DistanceField, points_camera: np.ndarray, hyp: Hypotheses, up:
     R, t = hyp.R.copy(), hyp.t.copy()
     grid = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], dtype=np.float64)
     best = score_poses(field, points_camera, R, t, tau_m=tau_m)
-    for _ in range(rounds):
+    live = np.arange(len(R))
+    for round_ in range(rounds):
+        if round_ > 0 and later_within is not None:
+            live = np.flatnonzero(best >= best.max() - later_within)
         dR = yaw_rotations(up, np.radians(np.array([-step_deg, 0.0, step_deg])))  # (3, 3, 3)
-        # Every hypothesis's 81 neighbours scored in one call, yaw-major as (yaw, offset) pairs.
-        Rs = np.repeat(np.einsum("yij,hjk->hyik", dR, R), len(grid), axis=1).reshape(-1, 3, 3)
-        ts = np.tile((t[:, None, :] + grid[None] * step_m), (1, len(dR), 1)).reshape(-1, 3)
-        s = score_poses(field, points_camera, Rs, ts, tau_m=tau_m).reshape(len(R), -1)
+        # Every live hypothesis's 81 neighbours scored in one call, yaw-major as (yaw, offset) pairs.
+        Rs = np.repeat(np.einsum("yij,hjk->hyik", dR, R[live]), len(grid), axis=1).reshape(-1, 3, 3)
+        ts = np.tile((t[live][:, None, :] + grid[None] * step_m), (1, len(dR), 1)).reshape(-1, 3)
+        s = score_poses(field, points_camera, Rs, ts, tau_m=tau_m).reshape(len(live), -1)
         k = np.argmax(s, axis=1)
-        better = np.flatnonzero(s[np.arange(len(R)), k] > best)
+        better = np.flatnonzero(s[np.arange(len(live)), k] > best[live])
         moved = better * s.shape[1] + k[better]
-        R[better], t[better], best[better] = Rs[moved], ts[moved], s[better, k[better]]
+        R[live[better]], t[live[better]], best[live[better]] = Rs[moved], ts[moved], s[better, k[better]]
         step_m, step_deg = step_m / 2, step_deg / 2
     out = Hypotheses(R, t, hyp.seed)
     out.geometric = best

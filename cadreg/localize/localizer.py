@@ -117,6 +117,12 @@ TIE_FIT_TAU_M = 0.02
 TIE_FIT_MARGIN = 0.02
 # Flat-surface normals sampled for the yaw candidates of the label-free search when the up estimate gave none.
 YAW_NORMAL_POINTS = 1000
+# The label-free search's leaves are polished (`bbs.polish`) twice, the second round only for those its first left
+# within the building's tie margin and this of the best: the second round's half steps raised a leaf's score by at
+# most 0.12 (the 100-room frames without labels: 245 leaves a frame, 52 within 0.16 after the first round), and
+# only leaves that end within the tie margin are ranked by room. 100 rooms without labels: median -3 %, p90 -8 %,
+# every answer the same.
+POLISH_LATER_GAIN = 0.14
 # An object's top is the 98th percentile of its points along up: the highest 2 % are mixed pixels and noise.
 TOP_PERCENTILE = 98
 
@@ -1353,7 +1359,8 @@ class Localizer:
         count = lf.candidates if len(self.maps) == 1 else lf.candidates * (1 + self.config.regions.max_verified)
         hyp = pyr.hypotheses(poses, scores, R_up, count=count, min_translation_m=mc.distinct_translation_m,
                              min_rotation_deg=mc.distinct_rotation_deg)
-        hyp = polish(self.field, scan.score_xyz, hyp, self.up, step_m=lf.voxel_m / 2, step_deg=lf.yaw_step_deg / 2)
+        hyp = polish(self.field, scan.score_xyz, hyp, self.up, step_m=lf.voxel_m / 2, step_deg=lf.yaw_step_deg / 2,
+                     later_within=self.config.regions.tie_margin + POLISH_LATER_GAIN)
         if len(self.maps) > 1 and len(hyp):
             keep, unverified = self._region_candidates(hyp, hyp.geometric, self.maps.indices_at(hyp.t),
                                                        count=lf.candidates)
