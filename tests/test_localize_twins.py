@@ -14,6 +14,7 @@ from cadreg.config import LocalizeConfig, MatchConfig, RegionConfig
 from cadreg.geometry import pose_errors
 from cadreg.localize.localizer import Localizer, Renders
 from cadreg.localize.match import MapGraph
+from cadreg.localize.stages import Refined
 from cadreg.localize.twins import RoomTwins
 from cadreg.result import Status
 
@@ -143,19 +144,19 @@ def test_poses_that_look_alike_are_told_apart_by_the_frame_objects(twin_rooms_di
 
     def entry(T):
         c = Candidate(T, 0.9, Hypothesis(T, 0.0, 0.0, 0.0, 0.9), np.zeros(0, np.int64))
-        return 0.9, RefineOutcome(T, None, 1, True, "small_gicp"), c, 0.0
+        return Refined(0.9, RefineOutcome(T, None, 1, True, "small_gicp"), c)
 
     def answered_in_b(frame, T_a):
         scan, diag = scan_of(frame)
         in_b, in_a = entry(to_b @ T_a), entry(T_a)
-        refined, candidates = [in_b], [in_b[2], in_a[2]]
+        refined, candidates = [in_b], [in_b.candidate, in_a.candidate]
         refine_calls = []
 
         def refine(c):  # the rival's refinement: its pose is already the true one
             refine_calls.append(c)
-            return 0.9, in_a[1], c, 0.0
+            return Refined(0.9, in_a.outcome, c)
 
-        told = loc._told_by_objects(scan, refined, [in_a[2]], refine, candidates, diag)
+        told = loc._told_by_objects(scan, refined, [in_a.candidate], refine, candidates, diag)
         return told, refined, refine_calls, scan
 
     frames = render_turn(scene0470_dir / "scene0470_00_vh_clean_2.ply",
@@ -164,10 +165,10 @@ def test_poses_that_look_alike_are_told_apart_by_the_frame_objects(twin_rooms_di
     chair_view, T_a = RecordedFrames.open(frames).load(1)  # the chair and the bin only room "a" holds
     told, refined, refine_calls, scan = answered_in_b(chair_view, T_a)
     assert loc._objects_explained(scan, T_a) - loc._objects_explained(scan, to_b @ T_a) >= 0.05
-    assert told and len(refine_calls) == 1 and pose_errors(refined[0][1].T_map_camera, T_a)[0] < 1e-9
+    assert told and len(refine_calls) == 1 and pose_errors(refined[0].T_map_camera, T_a)[0] < 1e-9
     shared, T_shared = twin_shared_view  # the table's corner, which both rooms show
     told, refined, refine_calls, _ = answered_in_b(shared, T_shared)
-    assert not told and not refine_calls and pose_errors(refined[0][1].T_map_camera, to_b @ T_shared)[0] < 1e-9
+    assert not told and not refine_calls and pose_errors(refined[0].T_map_camera, to_b @ T_shared)[0] < 1e-9
 
 
 def test_the_copies_of_a_pose_the_objects_put_first_are_looked_at(scene0470_site_dir: Path, scene0470_dir: Path,
@@ -210,7 +211,7 @@ def test_the_copies_of_a_pose_the_objects_put_first_are_looked_at(scene0470_site
     winner = Candidate(T_a, score, Hypothesis(T_a, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64))
     candidates, renders = [winner], Renders()
     renders[out] = render
-    twins = loc._promoted_twins(scan, [(score, out, winner, 0.0)], scan.center_camera, candidates, renders)
+    twins = loc._promoted_twins(scan, [Refined(score, out, winner)], scan.center_camera, candidates, renders)
     in_b, in_c = np.array(moved(ROOM_B_OFFSET_M)) @ T_a, np.array(moved(2 * ROOM_B_OFFSET_M)) @ T_a
     assert any(pose_errors(t.T_map_camera, in_c)[0] < 0.05 and t.hypothesis.region == "c" for t in twins)
     assert all(any(t is c for c in candidates) for t in twins)  # listed among the candidates the result reports
@@ -239,14 +240,14 @@ def _shared_view_scan(twin_rooms_dir: Path, twin_shared_view):
     return loc, loc._scan(frame, diag, StageTimer(diag.stage_ms)), T_a, to_b
 
 
-def _refined_entry(T: np.ndarray, score: float) -> tuple:
-    """A refine-stage entry (view agreement, outcome, candidate, see-through) at pose T."""
+def _refined_entry(T: np.ndarray, score: float) -> Refined:
+    """A refine-stage entry at pose T with view agreement `score`."""
     from cadreg.localize.refine import RefineOutcome
     from cadreg.localize.stages import Candidate
     from cadreg.result import Hypothesis
 
     c = Candidate(T, score, Hypothesis(T, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64))
-    return score, RefineOutcome(T, None, 1, True, "small_gicp"), c, 0.0
+    return Refined(score, RefineOutcome(T, None, 1, True, "small_gicp"), c)
 
 
 @pytest.mark.realdata
@@ -271,18 +272,18 @@ def test_a_copy_a_little_behind_the_answer_is_refined_once(twin_rooms_dir: Path,
 
         def refine(c):  # the copy's refinement fits it to its room: it comes within the ambiguity margin
             calls.append(c)
-            return 0.79, RefineOutcome(c.T_map_camera, None, 1, True, "small_gicp"), c, 0.0
+            return Refined(0.79, RefineOutcome(c.T_map_camera, None, 1, True, "small_gicp"), c)
 
-        refined, candidates = [winner], [winner[2]]
+        refined, candidates = [winner], [winner.candidate]
         renders = Renders()
-        renders[winner[1]] = scan.view.render(loc.field, T_a)[0]
+        renders[winner.outcome] = scan.view.render(loc.field, T_a)[0]
         left = loc._promote_twins(scan, refined, list(twins), refine, candidates, renders, scan.center_camera)
         return calls, refined, left, renders, candidates, twins
 
     calls, refined, left, renders, candidates, twins = promote([0.05, 0.06])
-    assert len(calls) == 1 and calls[0] is twins[0][2]  # the nearest copy, and only it
+    assert len(calls) == 1 and calls[0] is twins[0].candidate  # the nearest copy, and only it
     assert len(left) == 1 and left[0] is twins[1]
-    assert [r[0] for r in refined] == [0.8, 0.79] and refined[1][2] is twins[0][2]
+    assert [r.score for r in refined] == [0.8, 0.79] and refined[1].candidate is twins[0].candidate
     has_rival, margin, rivals = loc._view_rivals(refined, renders, candidates, scan)
     assert has_rival and margin < loc.config.match.ambiguity_margin
     assert len(rivals) == 1 and rivals[0].hypothesis.region == "b"
@@ -304,12 +305,12 @@ def test_a_copy_that_wins_has_its_copies_looked_at_only_in_the_rooms_that_stood(
     start = loc._roi_region(T_a, scan.center_camera)
 
     def looked(among):
-        candidates = [_refined_entry(T_a, 0.8)[2]]
+        candidates = [_refined_entry(T_a, 0.8).candidate]
         return loc._twin_views(scan, T_a, scan.center_camera, candidates, Renders(), 1, 0.8, among=among)
 
     everywhere = looked(None)
-    assert [loc._roi_region(t[1].T_map_camera, scan.center_camera) for t in everywhere] == [1 - start]
-    assert looked({1 - start})[0][0] == everywhere[0][0]
+    assert [loc._roi_region(t.T_map_camera, scan.center_camera) for t in everywhere] == [1 - start]
+    assert looked({1 - start})[0].score == everywhere[0].score
     assert looked(set()) == [] and looked({start}) == []
 
     aside = np.eye(4)
@@ -327,22 +328,22 @@ def test_a_copy_that_wins_has_its_copies_looked_at_only_in_the_rooms_that_stood(
 
     def promote(moved_m: float) -> list:
         renders = Renders()
-        renders[winner[1]] = scan.view.render(loc.field, T_a)[0]
-        refined, candidates = [winner], [winner[2]]
+        renders[winner.outcome] = scan.view.render(loc.field, T_a)[0]
+        refined, candidates = [winner], [winner.candidate]
         nudge = np.eye(4)
         nudge[0, 3] = moved_m
-        left = loc._promote_twins(scan, refined, list(twins), lambda c: (
-            0.86, RefineOutcome(nudge @ c.T_map_camera, None, 1, True, "small_gicp"), c, 0.0), candidates, renders,
+        left = loc._promote_twins(scan, refined, list(twins), lambda c: Refined(
+            0.86, RefineOutcome(nudge @ c.T_map_camera, None, 1, True, "small_gicp"), c), candidates, renders,
             scan.center_camera)
-        assert refined[0][2] is twins[0][2]
-        return left + [r[2] for r in refined]
+        assert refined[0].candidate is twins[0].candidate
+        return left + [r.candidate for r in refined]
 
     promote(0.02)  # refined 2 cm off the copy's pose: its copies are looked at again
     assert asked == [{loc._roi_region(aside @ T_a, scan.center_camera)}]
     asked.clear()
     # 1 mm off: not looked at again, and the copy that stood stays (here refined next: within the contender margin)
     seen = promote(0.001)
-    assert asked == [] and any(k is twins[1][2] for k in seen)
+    assert asked == [] and any(k is twins[1].candidate for k in seen)
 
 
 def test_a_render_belongs_to_its_outcome_not_to_an_id_a_discarded_one_freed() -> None:
@@ -381,31 +382,31 @@ def test_of_poses_that_look_alike_the_one_the_frames_points_fit_closest_goes_fir
 
     def entry(T):
         c = Candidate(T, 0.9, Hypothesis(T, 0.0, 0.0, 0.0, 0.9), np.zeros(0, np.int64))
-        return 0.9, RefineOutcome(T, None, 1, True, "small_gicp"), c, 0.0
+        return Refined(0.9, RefineOutcome(T, None, 1, True, "small_gicp"), c)
 
     def answered_in_b(frame, T_a):
         diag = Diagnostics(site_id="s", bundle_version="v")
         scan = loc._scan(replace(frame, labels=None), diag, StageTimer(diag.stage_ms))
         in_b, in_a = entry(to_b @ T_a), entry(T_a)
-        refined, candidates, calls = [in_b], [in_b[2], in_a[2]], []
+        refined, candidates, calls = [in_b], [in_b.candidate, in_a.candidate], []
 
         def refine(c):  # the rival's refinement: its pose is already the true one
             calls.append(c)
-            return 0.9, in_a[1], c, 0.0
+            return Refined(0.9, in_a.outcome, c)
 
-        loc._closest_fit_first(scan, refined, [in_a[2]], refine, candidates, diag)
+        loc._closest_fit_first(scan, refined, [in_a.candidate], refine, candidates, diag)
         return refined, calls, diag.notes
 
     frames = render_turn(scene0470_dir / "scene0470_00_vh_clean_2.ply",
                          scene0470_dir / "scene0470_00_vh_clean_2.labels.ply", tmp_path / "turn", n=2)
     chair_view, T_a = RecordedFrames.open(frames).load(1)  # the chair and the bin only room "a" holds
     refined, calls, notes = answered_in_b(chair_view, T_a)
-    assert len(calls) == 1 and pose_errors(refined[0][1].T_map_camera, T_a)[0] < 1e-9
-    assert pose_errors(refined[1][1].T_map_camera, to_b @ T_a)[0] < 1e-9  # the answer before it stays, second
+    assert len(calls) == 1 and pose_errors(refined[0].T_map_camera, T_a)[0] < 1e-9
+    assert pose_errors(refined[1].T_map_camera, to_b @ T_a)[0] < 1e-9  # the answer before it stays, second
     assert any("lie closest to the map" in n for n in notes)
     shared, T_shared = twin_shared_view  # the table's corner, which both rooms show
     refined, calls, _ = answered_in_b(shared, T_shared)
-    assert not calls and len(refined) == 1 and pose_errors(refined[0][1].T_map_camera, to_b @ T_shared)[0] < 1e-9
+    assert not calls and len(refined) == 1 and pose_errors(refined[0].T_map_camera, to_b @ T_shared)[0] < 1e-9
 
 
 @pytest.mark.realdata
@@ -420,8 +421,8 @@ def test_a_rival_put_first_without_a_render_is_rendered_for_the_answer(twin_room
     frame, T_a = twin_shared_view
 
     def put_a_bare_outcome_first(scan, refined, rivals, refine, candidates, diag):
-        c = rivals[0] if rivals else refined[0][2]
-        refined.insert(0, (1.0, RefineOutcome(c.T_map_camera, None, 0, False, "small_gicp"), c, 0.0))
+        c = rivals[0] if rivals else refined[0].candidate
+        refined.insert(0, Refined(1.0, RefineOutcome(c.T_map_camera, None, 0, False, "small_gicp"), c))
 
     monkeypatch.setattr(Localizer, "_closest_fit_first", staticmethod(put_a_bare_outcome_first))
     r = loc.localize(frame)  # the view both rooms show: its rivals are there

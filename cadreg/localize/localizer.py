@@ -44,7 +44,8 @@ from .points import FramePoints, frame_to_points, voxel_downsample
 from .refine import GICP_NEIGHBORS, REFINE_METHODS, RefineMap, RefineOutcome, crop_to_roi
 from .regions import RegionIndex, RegionMaps, region_cloud
 from .score import DistanceField, ViewCheck, score_poses
-from .stages import Candidate, Choice, Scan, StageTimer, answer_status, confidence, low_overlap_confidence, pose_std_m
+from .stages import (Candidate, Choice, Refined, Scan, StageTimer, answer_status, confidence, low_overlap_confidence,
+                     pose_std_m)
 from .tracking import Tracked, TrackState, track_frame
 
 # The quick screen of every graph hypothesis uses a third of the scoring points (at least this many): enough to
@@ -593,7 +594,7 @@ class Localizer:
         whole = None
         renders = Renders()  # a building's refined poses: the map's depth along the frame's rays
 
-        def refine(c: Candidate) -> tuple[float, RefineOutcome, Candidate, float]:
+        def refine(c: Candidate) -> Refined:
             nonlocal whole
             maps = self.maps_at(c.T_map_camera, center_camera)
             if c is not best and scan.zbuf is not None:
@@ -601,7 +602,7 @@ class Localizer:
                 if see > HOPELESS_SEE_THROUGH * mc.max_see_through:
                     # A rival the frame sees through this far at its coarse pose never refined into a credible
                     # one: it keeps that pose and a score of 0, as its refinement would have earned.
-                    return 0.0, RefineOutcome(c.T_map_camera, None, 0, False, method), c, see
+                    return Refined(0.0, RefineOutcome(c.T_map_camera, None, 0, False, method), c, see)
             out = self._refine_one(maps.refine_map, roi_points, c.T_map_camera, method)
             if roi_frame_points < len(source):
                 # The ROI leaves out the frame's far points; when those were what held the pose along some
@@ -619,7 +620,7 @@ class Localizer:
                 out.T_map_camera, scan.zbuf, scan.K)
             if scan.view is not None:
                 # Along the frame's rays the map in front of the measured depth already counts against the pose.
-                return float(scan.view.agreement(self._render_of(scan, renders, out))[0]), out, c, see
+                return Refined(float(scan.view.agreement(self._render_of(scan, renders, out))[0]), out, c, see)
             # A pose at which the frame sees through the map ranks below one at which it does not, whatever its
             # fit: the same factor as in the confidence.
             score = self._agreement_score(out.T_map_camera, scan) * max(0.0, 1.0 - see / mc.max_see_through)
@@ -627,14 +628,14 @@ class Localizer:
                 # Two basins of one hypothesis are told apart as the sensor sees them: the labels that ranked them
                 # are what put them side by side (`_near_contender`).
                 score *= maps.view_check.depth_agreement(out.T_map_camera, scan.zbuf, scan.K)
-            return score, out, c, see
+            return Refined(score, out, c, see)
 
         refined = [refine(c) for c in contenders]
         taken_next: Candidate | None = None  # the candidate taken after every contender saw through the map
-        if all(r[3] > mc.max_see_through for r in refined):
+        if all(r.see_through > mc.max_see_through for r in refined):
             # Every contender puts the map in front of what the frame measured: the next distinct candidates
             # (at most EXTRA_CONTENDERS more) are refined until one does not.
-            tried = [r[1].T_map_camera for r in refined]
+            tried = [r.T_map_camera for r in refined]
             limit = len(refined) + EXTRA_CONTENDERS
             for c in candidates[1:]:
                 if len(refined) >= limit:
@@ -642,37 +643,37 @@ class Localizer:
                 if any(c is k for k in contenders) or not all(self._distinct(c.T_map_camera, T) for T in tried):
                     continue
                 refined.append(refine(c))
-                tried.append(refined[-1][1].T_map_camera)
-                if refined[-1][3] <= mc.max_see_through:
+                tried.append(refined[-1].T_map_camera)
+                if refined[-1].see_through <= mc.max_see_through:
                     diag.notes.append(f"the best {len(refined) - 1} poses saw through the map: took the next")
                     taken_next = c
                     break
         rivals = None
         if scan.view is not None:
-            refined.sort(key=lambda r: -r[0])
+            refined.sort(key=lambda r: -r.score)
             self._report_refined(refined, candidates)
-            twins = self._twin_views(scan, refined[0][1].T_map_camera, center_camera, candidates, renders, len(refined),
-                                     refined[0][0])
-            for s_r, o_r, _, _ in refined[1:]:
+            twins = self._twin_views(scan, refined[0].T_map_camera, center_camera, candidates, renders, len(refined),
+                                     refined[0].score)
+            for r in refined[1:]:
                 # A contender the answer cannot be told from: the copies of its view are looked at too. The truth's
                 # room may be a copy of the runner-up's room-relative view, not of the answer's (a room lacking
                 # a chair the frame sees shows the right view a little worse than another room a wrong one).
-                if refined[0][0] - s_r >= mc.ambiguity_margin or not self._distinct(o_r.T_map_camera,
-                                                                                     refined[0][1].T_map_camera):
+                if refined[0].score - r.score >= mc.ambiguity_margin or not self._distinct(r.T_map_camera,
+                                                                                         refined[0].T_map_camera):
                     continue
-                more = self._twin_views(scan, o_r.T_map_camera, center_camera, candidates, renders, len(refined),
-                                        refined[0][0])
-                twins += [t for t in more if all(self._distinct(t[1].T_map_camera, u[1].T_map_camera) for u in twins)]
+                more = self._twin_views(scan, r.T_map_camera, center_camera, candidates, renders, len(refined),
+                                        refined[0].score)
+                twins += [t for t in more if all(self._distinct(t.T_map_camera, u.T_map_camera) for u in twins)]
             twins = self._promote_twins(scan, refined, twins, refine, candidates, renders, center_camera)
-            candidates.extend(t[2] for t in twins)
+            candidates.extend(t.candidate for t in twins)
             has_rival, margin, rivals = self._view_rivals(refined + twins, renders, candidates, scan)
             diag.notes.append(f"refined {len(refined)} of the best poses, view agreement "
-                              + ", ".join(f"{r[0]:.3f}" for r in refined)
+                              + ", ".join(f"{r.score:.3f}" for r in refined)
                               + (f"; {len(rivals)} distinct poses look the same along the frame's rays" if rivals else ""))
             if rivals and scan.clusters:
-                before = refined[0][2]
+                before = refined[0].candidate
                 told = self._told_by_objects(scan, refined, rivals, refine, candidates, diag)
-                if told and refined[0][2] is not before:
+                if told and refined[0].candidate is not before:
                     # The objects put a rival first: the copies of its view were never looked at (the twin check
                     # ran from the pose it replaced). A copy that shows the frame as well stands as its rival.
                     # (A 100-room view repeated in four rooms was answered `ok` in one of them this way.)
@@ -688,23 +689,23 @@ class Localizer:
                 self._closest_fit_first(scan, refined, rivals, refine, candidates, diag)
         else:
             if len(refined) > 1:
-                refined.sort(key=lambda r: -r[0])
-                diag.notes.append(f"refined {len(refined)} close hypotheses, scores " + ", ".join(f"{r[0]:.3f}" for r in refined))
-                has_rival, margin = self._rival_margin([r[0] for r in refined], [r[1].T_map_camera for r in refined])
+                refined.sort(key=lambda r: -r.score)
+                diag.notes.append(f"refined {len(refined)} close hypotheses, scores " + ", ".join(f"{r.score:.3f}" for r in refined))
+                has_rival, margin = self._rival_margin([r.score for r in refined], [r.T_map_camera for r in refined])
             else:
                 has_rival, margin = self._rival_margin([c.score for c in candidates], [c.T_map_camera for c in candidates])
             # A distinct candidate as close to the best as the contenders, but beyond the refine_contenders refined,
             # was never ruled out: the answer cannot claim to be the one.
             unexamined = [c for c in candidates[1:] if best.score - c.score < mc.ambiguity_margin
-                          and not any(c is r[2] for r in refined)
-                          and all(self._distinct(c.T_map_camera, r[1].T_map_camera) for r in refined)]
+                          and not any(c is r.candidate for r in refined)
+                          and all(self._distinct(c.T_map_camera, r.T_map_camera) for r in refined)]
             if unexamined:
                 diag.notes.append(f"{len(unexamined)} more distinct hypotheses as close as the refined ones were not refined")
                 has_rival, margin = True, 0.0
         if scan.unverified:
             diag.notes.append(f"{len(scan.unverified)} more regions tied with the best and were not verified")
             has_rival, margin = True, 0.0
-        _, out, winner, see = refined[0]
+        out, winner, see = refined[0].outcome, refined[0].candidate, refined[0].see_through
         fitness, rmse = self.maps_at(out.T_map_camera, center_camera).refine_map.fitness(
             transform_points(out.T_map_camera, scan.check_xyz), inlier_m=rc.inlier_m)
         if scan.view is not None:
@@ -741,45 +742,46 @@ class Localizer:
                 return c
         return None
 
-    def _promote_twins(self, scan: Scan, refined: list, twins: list[tuple], refine, candidates: list[Candidate],
-                       renders: Renders, center_camera: np.ndarray) -> list[tuple]:
+    def _promote_twins(self, scan: Scan, refined: list[Refined], twins: list[Refined], refine,
+                       candidates: list[Candidate], renders: Renders, center_camera: np.ndarray) -> list[Refined]:
         """The copies of the winner's view (`_twin_views`) that `_twin_to_refine` picks, refined (`refine`, the
         refine stage's) into `refined` (kept sorted, best first), at most TWIN_PROMOTIONS a frame; a copy that wins
         has its own copies looked at in turn. Returns the copies left unrefined."""
         looked_below = False
         for _ in range(TWIN_PROMOTIONS):
-            promoted = self._twin_to_refine(twins, refined[0][0], below=not looked_below)
+            promoted = self._twin_to_refine(twins, refined[0].score, below=not looked_below)
             if promoted is None:
                 break
             # A copy of the winner's room shows the frame better, or nearly as well with no other copy as close:
             # it is refined too, and may win (when its refinement leaves it below the winner, the next copy that
             # shows the frame better is tried); a new winner's own copies are then looked at as well.
-            looked_below |= promoted[0] <= refined[0][0]
+            looked_below |= promoted.score <= refined[0].score
             twins.remove(promoted)
-            refined.append(refine(promoted[2]))
-            refined.sort(key=lambda r: -r[0])
+            refined.append(refine(promoted.candidate))
+            refined.sort(key=lambda r: -r.score)
             self._report_refined(refined, candidates)
-            if refined[0][2] is promoted[2]:
-                moved_m, turned_deg = pose_errors(refined[0][1].T_map_camera, promoted[1].T_map_camera)
+            if refined[0].candidate is promoted.candidate:
+                moved_m, turned_deg = pose_errors(refined[0].T_map_camera, promoted.T_map_camera)
                 if moved_m < TWIN_SAME_POSE_M and turned_deg < TWIN_SAME_POSE_DEG:
                     # The copy refined in its room stayed where the twin check put it: its copies are the rooms
                     # that check looked at (the new winner's view moved into them is the earlier pose moved there),
                     # and their renders stand.
                     continue
-                candidates.extend(t[2] for t in twins)
+                candidates.extend(t.candidate for t in twins)
                 # Only the rooms whose copies stood from the earlier pose are looked at again: the new winner is
                 # that pose's copy refined (a few centimetres off it) and shows the frame better, so a room whose
                 # copy fell short of the earlier, lower bar falls short of this one too.
-                more = self._twin_views(scan, refined[0][1].T_map_camera, center_camera, candidates, renders,
-                                        len(refined), refined[0][0],
-                                        among={self._roi_region(t[1].T_map_camera, center_camera) for t in twins})
+                more = self._twin_views(scan, refined[0].T_map_camera, center_camera, candidates, renders,
+                                        len(refined), refined[0].score,
+                                        among={self._roi_region(t.T_map_camera, center_camera) for t in twins})
                 # a copy seen from the new winner replaces the same copy seen from an earlier pose
-                apart = self._distinct_from_all([t[1].T_map_camera for t in twins], [u[1].T_map_camera for u in more])
+                apart = self._distinct_from_all([t.T_map_camera for t in twins], [u.T_map_camera for u in more])
                 twins = [t for t, keep in zip(twins, apart) if keep] + more
-                candidates[len(refined):] = [c for c in candidates[len(refined):] if all(c is not t[2] for t in twins)]
+                candidates[len(refined):] = [c for c in candidates[len(refined):]
+                                             if all(c is not t.candidate for t in twins)]
         return twins
 
-    def _twin_to_refine(self, twins: list[tuple], score: float, *, below: bool) -> tuple | None:
+    def _twin_to_refine(self, twins: list[Refined], score: float, *, below: bool) -> Refined | None:
         """The copy of the winner's view (`_twin_views`) to refine next, or None: the one that shows the frame best
         when it shows it better than the winner (view agreement `score`); or, when `below` (once a frame: on the
         100-room benchmark a fifth of the frames had such a copy, and a second or third one refined never changed
@@ -791,10 +793,10 @@ class Localizer:
         the answer ambiguous as it stands."""
         if not twins:
             return None
-        best = max(twins, key=lambda t: t[0])
-        if best[0] > score:
+        best = max(twins, key=lambda t: t.score)
+        if best.score > score:
             return best
-        behind = score - best[0]
+        behind = score - best.score
         mc = self.config.match
         return best if below and mc.ambiguity_margin <= behind < self.config.regions.contender_margin else None
 
@@ -821,10 +823,11 @@ class Localizer:
 
     def _twin_views(self, scan: Scan, T_map_camera: np.ndarray, center_camera: np.ndarray,
                     candidates: list[Candidate], renders: Renders, refined: int,
-                    view_score: float, among: set[int] | None = None) -> list[tuple]:
+                    view_score: float, among: set[int] | None = None) -> list[Refined]:
         """In a building: the winner's pose moved into each room that repeats the room its view looks into
-        (`twins.py`), where no refined contender stands, pulled onto the field and rendered: (view agreement, outcome,
-        candidate, 0.0) as the refined contenders, each render put in `renders` under its outcome's id.
+        (`twins.py`), where no refined contender stands, pulled onto the field and rendered: each as a `Refined`
+        (its view agreement, an outcome with no refinement, its candidate), each render put in `renders` under its
+        outcome's id.
         view_score : the winner's view agreement. among : the rooms to look at (every copy when None).
         candidates : the refined contenders first (`refined` of them), then the others; an unrefined candidate at a
         copy's pose is dropped from it (the copy's pose comes from the refined answer), a refined one stands.
@@ -893,7 +896,7 @@ class Localizer:
                            matches=[(int(i), self.graph.ids[n]) for i, n in enumerate(carried) if n >= 0])
             outcome = RefineOutcome(T_k, None, 0, False, "field")
             renders[outcome] = rendered[k]
-            out.append((float(score[k]), outcome, Candidate(T_k, float(score[k]), h, carried, rendered[k]), 0.0))
+            out.append(Refined(float(score[k]), outcome, Candidate(T_k, float(score[k]), h, carried, rendered[k])))
         return out
 
     def _shows_objects(self, scan: Scan, T_map_camera: np.ndarray, poses: list[np.ndarray]) -> np.ndarray:
@@ -912,20 +915,20 @@ class Localizer:
         """Index of the region holding the centre of a pose's region of interest (what `maps_at` builds)."""
         return int(self.maps.indices_at(T_map_camera[:3, :3] @ center_camera + T_map_camera[:3, 3])[0])
 
-    def _report_refined(self, refined: list, candidates: list[Candidate]) -> None:
+    def _report_refined(self, refined: list[Refined], candidates: list[Candidate]) -> None:
         """In a building: the refined contenders' candidates are replaced, in `candidates` and in the refined
         order (the winner first), by their refined poses and view agreements, so that the result reports the poses
         the answer was judged by (the field alignment leaves a few centimetres)."""
         first = []
-        for score, out, c, _ in refined:
-            T = out.T_map_camera
-            first.append(replace(c, T_map_camera=T, score=score, hypothesis=replace(
-                c.hypothesis, T_map_camera=T, geometric_score=score, region=self.region_of(T))))
-        done = [r[2] for r in refined] + first
+        for r in refined:
+            T, c = r.T_map_camera, r.candidate
+            first.append(replace(c, T_map_camera=T, score=r.score, hypothesis=replace(
+                c.hypothesis, T_map_camera=T, geometric_score=r.score, region=self.region_of(T))))
+        done = [r.candidate for r in refined] + first
         candidates[:] = first + [c for c in candidates if not any(c is d or c.T_map_camera is d.T_map_camera for d in done)]
 
-    def _told_by_objects(self, scan: Scan, refined: list, rivals: list[Candidate], refine, candidates: list[Candidate],
-                         diag: Diagnostics) -> bool:
+    def _told_by_objects(self, scan: Scan, refined: list[Refined], rivals: list[Candidate], refine,
+                         candidates: list[Candidate], diag: Diagnostics) -> bool:
         """In a building, when distinct poses look the same along the frame's rays: whether the frame's labelled
         objects tell one of them from the rest. Each pose is credited with the frame's view in objects that have
         a map node of their class within match_radius_m where it places them (`_objects_explained`); when one pose
@@ -940,7 +943,7 @@ class Localizer:
         calls views that differ by less than about one small object (3 % of the pixels) the same, and a sliver of
         a chair at the frame's border, or a partly seen table whose centroid lands 0.6 m from its node, told
         copies apart by 0.3-4 % (one of them wrongly)."""
-        poses = [refined[0][1].T_map_camera] + [c.T_map_camera for c in rivals]
+        poses = [refined[0].T_map_camera] + [c.T_map_camera for c in rivals]
         explained = [self._objects_explained(scan, T) for T in poses]
         k = int(np.argmax(explained))
         second = max(explained[:k] + explained[k + 1:])
@@ -953,11 +956,11 @@ class Localizer:
                           f"{len(poses) - 1} other poses that look the same")
         return True
 
-    def _put_first(self, rival: Candidate, refined: list, refine, candidates: list[Candidate]) -> None:
+    def _put_first(self, rival: Candidate, refined: list[Refined], refine, candidates: list[Candidate]) -> None:
         """A rival a tie-break chose becomes the answer: its refined entry moved to the front of `refined`, or, when
         it was not refined, refined now (`refine`, the refine stage's) and put there; `candidates` reordered to
         match (`_report_refined`)."""
-        promoted = next((r for r in refined if r[1].T_map_camera is rival.T_map_camera), None)
+        promoted = next((r for r in refined if r.T_map_camera is rival.T_map_camera), None)
         if promoted is None:
             promoted = refine(rival)
         else:
@@ -965,7 +968,7 @@ class Localizer:
         refined.insert(0, promoted)
         self._report_refined(refined, candidates)
 
-    def _closest_fit_first(self, scan: Scan, refined: list, rivals: list[Candidate], refine,
+    def _closest_fit_first(self, scan: Scan, refined: list[Refined], rivals: list[Candidate], refine,
                            candidates: list[Candidate], diag: Diagnostics) -> None:
         """In a building, when distinct poses look the same along the frame's rays (the answer will be
         `ambiguous`): the one whose frame points lie closest to the map's surfaces, by TIE_FIT_MARGIN or more over
@@ -979,7 +982,7 @@ class Localizer:
         with the truth second, 0.001-0.004 of view agreement behind and 0.06-0.09 ahead in this fit; over every
         `ambiguous` answer of the 10- and 100-room and mixed buildings, it put the truth first 16 times (9 of them
         repeated views, the truth's own room first among its copies) and never put a wrong pose before a right one."""
-        poses = np.stack([refined[0][1].T_map_camera] + [c.T_map_camera for c in rivals])
+        poses = np.stack([refined[0].T_map_camera] + [c.T_map_camera for c in rivals])
         fit = score_poses(self.field, scan.down.xyz, poses[:, :3, :3], poses[:, :3, 3], tau_m=TIE_FIT_TAU_M)
         k = int(np.argmax(fit))
         if k == 0 or fit[k] < fit[0] + TIE_FIT_MARGIN:
@@ -989,18 +992,18 @@ class Localizer:
                           f"the one put first ({fit[k]:.3f} within {100 * TIE_FIT_TAU_M:.0f} cm, the answer before it "
                           f"{fit[0]:.3f})")
 
-    def _promoted_twins(self, scan: Scan, refined: list, center_camera: np.ndarray, candidates: list[Candidate],
-                        renders: Renders) -> list[Candidate]:
+    def _promoted_twins(self, scan: Scan, refined: list[Refined], center_camera: np.ndarray,
+                        candidates: list[Candidate], renders: Renders) -> list[Candidate]:
         """The copies of the winner's view (`_twin_views`, from refined[0]) that stand as its rivals: within the
         ambiguity margin of its view agreement, or showing the same along the frame's rays
         (RegionConfig.twin_agreement): `_look_alike`, as `_view_rivals` has them. Each is added to `candidates`."""
-        score, out = refined[0][0], refined[0][1]
+        score, out = refined[0].score, refined[0].outcome
         twins = self._twin_views(scan, out.T_map_camera, center_camera, candidates, renders, len(refined), score)
         if not twins:
             return []
-        alike = self._look_alike(scan, score, np.array([t[0] for t in twins]),
-                                 np.stack([renders[t[1]] for t in twins]), self._render_of(scan, renders, out))
-        standing = [t[2] for t, a in zip(twins, alike) if a]
+        alike = self._look_alike(scan, score, np.array([t.score for t in twins]),
+                                 np.stack([renders[t.outcome] for t in twins]), self._render_of(scan, renders, out))
+        standing = [t.candidate for t, a in zip(twins, alike) if a]
         candidates.extend(standing)
         return standing
 
@@ -1039,10 +1042,10 @@ class Localizer:
             placed[:, k] = self.graph.nearest_of_class(xyz[:, k], c.cls, radius) >= 0
         return placed
 
-    def _view_rivals(self, refined: list, renders: Renders, candidates: list[Candidate],
+    def _view_rivals(self, refined: list[Refined], renders: Renders, candidates: list[Candidate],
                      scan: Scan) -> tuple[bool, float, list[Candidate]]:
         """In a building: (has a distinct rival, margin, the rivals the answer cannot be told from) of the winner,
-        refined[0] ((view agreement, outcome, candidate, see-through) of each refined contender, best first). A
+        refined[0] (the refined contenders and the copies of the winner's view, best first). A
         pose distinct from the winner's is a rival when its view agreement lies within the ambiguity margin of the
         winner's, or when the map along the frame's rays shows the same at both (RegionConfig.twin_agreement): a
         room that repeats the view, which the frame's noise may rank either way. Refined contenders are compared
@@ -1050,16 +1053,17 @@ class Localizer:
         (a refined pose would beat an unrefined one by the refinement alone). The margin is to the best distinct
         pose, 0 when a twin stands."""
         mc = self.config.match
-        score, out, winner, _ = refined[0]
-        T, mine = out.T_map_camera, self._render_of(scan, renders, out)
+        score, winner = refined[0].score, refined[0].candidate
+        T, mine = refined[0].T_map_camera, self._render_of(scan, renders, refined[0].outcome)
         rivals, margin, has_rival = [], score, False
-        for s_r, o_r, c_r, _ in refined[1:]:
-            if not self._distinct(o_r.T_map_camera, T):
+        for r in refined[1:]:
+            if not self._distinct(r.T_map_camera, T):
                 continue
-            has_rival, margin = True, min(margin, score - s_r)
-            if self._look_alike(scan, score, np.array([s_r]), self._render_of(scan, renders, o_r)[None], mine)[0]:
-                rivals.append(next(c for c in candidates if c.T_map_camera is o_r.T_map_camera))
-        done = [r[1].T_map_camera for r in refined] + [r[2].T_map_camera for r in refined]
+            has_rival, margin = True, min(margin, score - r.score)
+            if self._look_alike(scan, score, np.array([r.score]), self._render_of(scan, renders, r.outcome)[None],
+                                mine)[0]:
+                rivals.append(next(c for c in candidates if c.T_map_camera is r.T_map_camera))
+        done = [r.T_map_camera for r in refined] + [r.candidate.T_map_camera for r in refined]
         apart = self._distinct_from_all([c.T_map_camera for c in candidates], done)
         rest = [c for c, keep in zip(candidates, apart) if keep]
         if rest:

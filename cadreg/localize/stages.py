@@ -102,6 +102,27 @@ class Candidate:
     rendered: np.ndarray | None = None  # in a building, (rays,) the map's depth along Scan.view's rays at the pose
 
 
+@dataclass(eq=False)  # one contender is itself only: `list.remove` and `is` find it, not equal fields
+class Refined:
+    """A contender of the refine stage after its fine refinement, or a copy of the winner's view in another room
+    (`Localizer._twin_views`: pulled onto the field, not refined).
+
+    score : what contenders are ranked by: in a building the view agreement along the frame's rays, else the
+        agreement score (`Localizer._agreement_score`) less the see-through. outcome : the refinement (its
+        `T_map_camera` is the refined pose). candidate : the candidate it started from. see_through : the share of
+        the map in view that the frame sees through at the refined pose (0 for a copy).
+    """
+
+    score: float
+    outcome: RefineOutcome
+    candidate: Candidate
+    see_through: float = 0.0
+
+    @property
+    def T_map_camera(self) -> np.ndarray:
+        return self.outcome.T_map_camera
+
+
 @dataclass
 class Choice:
     """The outcome of the refine stage.
