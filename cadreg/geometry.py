@@ -19,6 +19,13 @@ def make_T(R: np.ndarray | None = None, t: np.ndarray | None = None) -> np.ndarr
     return T
 
 
+def make_Ts(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(h, 3, 3) rotations and (h, 3) translations -> (h, 4, 4) poses (`make_T` of many)."""
+    T = np.tile(np.eye(4), (len(R), 1, 1))
+    T[:, :3, :3], T[:, :3, 3] = R, t
+    return T
+
+
 def is_rigid(T: np.ndarray, tol: float = 1e-3) -> bool:
     """T (4, 4), finite: a rotation (orthonormal, det +1, within `tol`) and a translation, bottom row 0 0 0 1."""
     R = T[:3, :3]

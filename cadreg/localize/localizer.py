@@ -7,7 +7,8 @@
     verify      a coarse GICP pulls each distinct hypothesis (and a client's prior) in, ranked by geometry, labels
                 and colour; when the graph's best is weak (no labels, no objects, no match) the label-free
                 search joins (branch-and-bound over x, y, z, yaw, `bbs.py`), FPFH + RANSAC only without an up
-    refine      fine refinement inside the region of interest of the best, and of its close rivals
+    refine      fine refinement inside the region of interest of the best, and of its close rivals; in a building,
+                the copies of its view in the rooms that repeat it (`building_views.py`)
     result      status, confidence and diagnostics
 
 Everything site-dependent is built once in `from_site` and reused for every frame.
@@ -24,7 +25,7 @@ import small_gicp
 from ..config import LocalizeConfig
 from ..errors import InvalidArgument, InvalidFrame
 from ..frame import Frame
-from ..geometry import pose_errors, rotation_between, transform_points
+from ..geometry import make_Ts, rotation_between, transform_points
 from ..result import Diagnostics, Hypothesis, LocalizationResult, Match, Refinement, Roi, ScanObject, Status
 from ..pointset import PointSet
 from ..site.bundle import Site
@@ -32,6 +33,7 @@ from ..site.regions import CAMERA_MARGIN_M, Region
 from .cluster import cluster_objects
 from .color_gicp import rgb_to_lab
 from .bbs import GridPyramid, map_direction_histogram, polish, yaw_candidates
+from .building_views import BuildingViews, Renders
 from . import field_kernels, grid_gicp, match, point_tree
 from . import twins as room_twins
 from .fallback import FpfhRansac
@@ -85,37 +87,10 @@ SLIDE_TOLERANCE = 0.01
 # within 5 cm / 5° in 86 % of the cases (72 % from a 25 cm reach in 10 steps; 20 cm off: 98 %), at 1.4 ms each.
 FIELD_ALIGN_ITERATIONS = 15
 FIELD_ALIGN_REACH_M = (0.5, 0.06)
-# A view moved into a room that repeats it starts within the copies' misfit (centimetres): a short alignment.
-TWIN_ALIGN_ITERATIONS = 6
-TWIN_ALIGN_REACH_M = (0.15, 0.06)
-# A copy's pose goes on to the alignment and the render when the frame's points fit the field there at most this
-# much worse than at the answer (MatchConfig.score_tau_m's soft inlier share). 0.3, was 0.15: a copy lacking an
-# object in view fits the field worse than its view agreement shows (a repeated 100-room view's twin fit 0.152
-# worse at its exact pose and agreed along the rays within 0.007, and the view was answered `ok`); the renders
-# that judge the copies cost a fifth of what they did (`field_kernels.trace`). On the 100-room benchmark repeated
-# views with the truth reported 93.5 -> 97.8 % labelled, 91.3 -> 93.5 % without; no wrong `ok`.
-TWIN_SCREEN_MARGIN = 0.3
-# The twin check's first look at every copy takes every TWIN_THIN_STEP-th ray of every TWIN_THIN_STEP-th row; a
-# copy is rendered in full when that look puts it within the ambiguity margin plus this slack of the answer (432
-# rays: a few hundredths of sampling noise).
-TWIN_THIN_STEP = 2
-TWIN_THIN_SLACK = 0.1
 # A refinement settles into the basin it starts in: a candidate farther than this from every refined pose is
 # another start (`_near_contender`), even when it is no distinct hypothesis (MatchConfig.distinct_translation_m).
 NEAR_REACH_M = 0.1
 NEAR_REACH_DEG = 5.0
-# Copies that show the frame better than the answer are refined, best first, at most this many a frame.
-TWIN_PROMOTIONS = 3
-# A promoted copy that wins and whose refinement moved it less than this from where the twin check put it has the
-# same copies, at the same poses, as that check looked at already: they are not looked at again. (100-room
-# benchmark: the winners' refinement moved them 1.2 mm and 0.03° at the median, 6.4 mm and 0.37° at the 90th
-# percentile; a render's depth tolerance is 4 cm.)
-TWIN_SAME_POSE_M = 0.005
-TWIN_SAME_POSE_DEG = 0.2
-# Among poses that look the same along the frame's rays, one whose frame points lie within TIE_FIT_TAU_M of the map
-# (`score_poses`' soft share) by this much more than the answer's is put first (`_closest_fit_first`).
-TIE_FIT_TAU_M = 0.02
-TIE_FIT_MARGIN = 0.02
 # Flat-surface normals sampled for the yaw candidates of the label-free search when the up estimate gave none.
 YAW_NORMAL_POINTS = 1000
 # The label-free search's leaves are polished (`bbs.polish`) twice, the second round only for those its first left
@@ -128,29 +103,6 @@ POLISH_LATER_GAIN = 0.14
 TOP_PERCENTILE = 98
 
 
-class Renders:
-    """The map's depth along the frame's rays ((r,), `FieldView.render`) at the poses of one frame's refine stage,
-    by the outcome (RefineOutcome) each belongs to. Each outcome is held with its render: keyed by a bare `id`, an
-    outcome the stage discards (a copy the twin check replaces) freed its id for a new one, which could then read
-    the old one's render as its own."""
-
-    def __init__(self) -> None:
-        self._by_id: dict[int, tuple[object, np.ndarray]] = {}
-
-    def __setitem__(self, outcome: object, depth: np.ndarray) -> None:
-        self._by_id[id(outcome)] = (outcome, depth)
-
-    def __getitem__(self, outcome: object) -> np.ndarray:
-        held, depth = self._by_id[id(outcome)]
-        if held is not outcome:
-            raise KeyError(outcome)
-        return depth
-
-    def __contains__(self, outcome: object) -> bool:
-        entry = self._by_id.get(id(outcome))
-        return entry is not None and entry[0] is outcome
-
-
 def compile_loops() -> None:
     """Compile (or load from numba's cache) every compiled loop the localizer runs: `Localizer.warm` at a server's
     start, the Dockerfile at build time."""
@@ -158,14 +110,15 @@ def compile_loops() -> None:
         module.warm()
 
 
-class Localizer:
+class Localizer(BuildingViews):
     """Localize frames in one site. Build with `from_site`; `localize` is read-only and may be called repeatedly.
 
     up : (3,) unit vector opposite to gravity, map frame. floor_height_m : the floor's height along `up`, metres.
     graph : the site's semantic graph as arrays. field : distance field over the whole map (raw and enhanced).
     maps : the site's regions and, per region, the map the refinement and the agreement scores use
     (`RefineConfig.map_points`) and the free-space check (`regions.py`): a pose uses those of the region it looks
-    into. node_region : (k,) int, the region (index into `maps.regions`) of each graph node.
+    into. node_region : (k,) int, the region (index into `maps.regions`) of each graph node. The refine stage's
+    steps that only a building takes are its base class's (`building_views.BuildingViews`).
     """
 
     def __init__(self, site: Site, config: LocalizeConfig, *, up: np.ndarray, floor_height_m: float, graph: MapGraph,
@@ -742,340 +695,6 @@ class Localizer:
                 return c
         return None
 
-    def _promote_twins(self, scan: Scan, refined: list[Refined], twins: list[Refined], refine,
-                       candidates: list[Candidate], renders: Renders, center_camera: np.ndarray) -> list[Refined]:
-        """The copies of the winner's view (`_twin_views`) that `_twin_to_refine` picks, refined (`refine`, the
-        refine stage's) into `refined` (kept sorted, best first), at most TWIN_PROMOTIONS a frame; a copy that wins
-        has its own copies looked at in turn. Returns the copies left unrefined."""
-        looked_below = False
-        for _ in range(TWIN_PROMOTIONS):
-            promoted = self._twin_to_refine(twins, refined[0].score, below=not looked_below)
-            if promoted is None:
-                break
-            # A copy of the winner's room shows the frame better, or nearly as well with no other copy as close:
-            # it is refined too, and may win (when its refinement leaves it below the winner, the next copy that
-            # shows the frame better is tried); a new winner's own copies are then looked at as well.
-            looked_below |= promoted.score <= refined[0].score
-            twins.remove(promoted)
-            refined.append(refine(promoted.candidate))
-            refined.sort(key=lambda r: -r.score)
-            self._report_refined(refined, candidates)
-            if refined[0].candidate is promoted.candidate:
-                moved_m, turned_deg = pose_errors(refined[0].T_map_camera, promoted.T_map_camera)
-                if moved_m < TWIN_SAME_POSE_M and turned_deg < TWIN_SAME_POSE_DEG:
-                    # The copy refined in its room stayed where the twin check put it: its copies are the rooms
-                    # that check looked at (the new winner's view moved into them is the earlier pose moved there),
-                    # and their renders stand.
-                    continue
-                candidates.extend(t.candidate for t in twins)
-                # Only the rooms whose copies stood from the earlier pose are looked at again: the new winner is
-                # that pose's copy refined (a few centimetres off it) and shows the frame better, so a room whose
-                # copy fell short of the earlier, lower bar falls short of this one too.
-                more = self._twin_views(scan, refined[0].T_map_camera, center_camera, candidates, renders,
-                                        len(refined), refined[0].score,
-                                        among={self._roi_region(t.T_map_camera, center_camera) for t in twins})
-                # a copy seen from the new winner replaces the same copy seen from an earlier pose
-                apart = self._distinct_from_all([t.T_map_camera for t in twins], [u.T_map_camera for u in more])
-                twins = [t for t, keep in zip(twins, apart) if keep] + more
-                candidates[len(refined):] = [c for c in candidates[len(refined):]
-                                             if all(c is not t.candidate for t in twins)]
-        return twins
-
-    def _twin_to_refine(self, twins: list[Refined], score: float, *, below: bool) -> Refined | None:
-        """The copy of the winner's view (`_twin_views`) to refine next, or None: the one that shows the frame best
-        when it shows it better than the winner (view agreement `score`); or, when `below` (once a frame: on the
-        100-room benchmark a fifth of the frames had such a copy, and a second or third one refined never changed
-        an answer), when it lies below, within RegionConfig.contender_margin, and no copy stands within the
-        ambiguity margin. A copy's pose is the winner's refined pose moved into its room, and that refinement
-        fitted the winner's room, not the copy's: in a 10-room building the right room's copy of a view answered
-        `ok` in its neighbour landed 2.3 cm off and showed the frame 0.767 to the winner's 0.811, where the truth
-        showed it 0.815. Refined, it is judged as the winner was. A copy already within the ambiguity margin makes
-        the answer ambiguous as it stands."""
-        if not twins:
-            return None
-        best = max(twins, key=lambda t: t.score)
-        if best.score > score:
-            return best
-        behind = score - best.score
-        mc = self.config.match
-        return best if below and mc.ambiguity_margin <= behind < self.config.regions.contender_margin else None
-
-    def _view_contenders(self, candidates: list[Candidate], center_camera: np.ndarray) -> list[Candidate]:
-        """In a building: the best candidate and, up to MatchConfig.refine_contenders, its distinct rivals within
-        RegionConfig.contender_margin of its view agreement, to be refined: a rival room's pose the field
-        alignment left a few centimetres off looks worse along the rays than it is, and only refined poses can be
-        told apart, or found to be the same view, fairly. A candidate at the best's view moved into a room that
-        repeats the best's is left to the twin check, which looks at it from the refined winner
-        (`_twin_views`): each refinement in a building builds a room's map (0.3 s at 100 rooms)."""
-        best, margin = candidates[0], self.config.regions.contender_margin
-        copies = dict(self.twins.of(self._roi_region(best.T_map_camera, center_camera)))
-        out = [best]
-        for c in candidates[1:]:
-            if len(out) >= self.config.match.refine_contenders:
-                break
-            b = self._roi_region(c.T_map_camera, center_camera)
-            if b in copies and not self._distinct(copies[b] @ best.T_map_camera, c.T_map_camera):
-                continue
-            if best.score - c.score < margin and all(
-                    self._distinct(c.T_map_camera, k.T_map_camera) for k in out):
-                out.append(c)
-        return out
-
-    def _twin_views(self, scan: Scan, T_map_camera: np.ndarray, center_camera: np.ndarray,
-                    candidates: list[Candidate], renders: Renders, refined: int,
-                    view_score: float, among: set[int] | None = None) -> list[Refined]:
-        """In a building: the winner's pose moved into each room that repeats the room its view looks into
-        (`twins.py`), where no refined contender stands, pulled onto the field and rendered: each as a `Refined`
-        (its view agreement, an outcome with no refinement, its candidate), each render put in `renders` under its
-        outcome's id.
-        view_score : the winner's view agreement. among : the rooms to look at (every copy when None).
-        candidates : the refined contenders first (`refined` of them), then the others; an unrefined candidate at a
-        copy's pose is dropped from it (the copy's pose comes from the refined answer), a refined one stands.
-        The graph match misses a copy whose objects rank it lower (a chair missing out of view, another
-        neighbour), and a view that copy repeats must not be answered `ok`, nor one it shows better."""
-        a = self._roi_region(T_map_camera, center_camera)
-        copies = [(b, T_ba) for b, T_ba in self.twins.of(a) if (among is None or b in among) and (
-                  scan.search is None or scan.search.allows((T_ba @ T_map_camera)[None, :3, 3], self.maps.regions)[0])]
-        moved = [T_ba @ T_map_camera for _, T_ba in copies]
-        keep = self._distinct_from_all(moved, [c.T_map_camera for c in candidates[:refined]])
-        if moved and scan.clusters:
-            keep &= self._shows_objects(scan, T_map_camera, moved)
-        copies, moved = [c for c, k in zip(copies, keep) if k], [T for T, k in zip(moved, keep) if k]
-        if len(moved):
-            # The view's pose in each copy, where the frame's points fit the map about as well as at the answer:
-            # a cheap screen on the field before the alignment and the render (a 100-room building has 99 copies).
-            mc = self.config.match
-            Ms = np.array(moved)
-            fit = score_poses(self.field, scan.score_xyz, Ms[:, :3, :3], Ms[:, :3, 3], tau_m=mc.score_tau_m)
-            here = score_poses(self.field, scan.score_xyz, T_map_camera[None, :3, :3], T_map_camera[None, :3, 3],
-                               tau_m=mc.score_tau_m)[0]
-            copies = [c for c, f in zip(copies, fit) if f >= here - TWIN_SCREEN_MARGIN]
-            moved = [T for T, f in zip(moved, fit) if f >= here - TWIN_SCREEN_MARGIN]
-        if not moved:
-            return []
-        # The objects the winner matched, carried into each copy: what pins the copy's pose as they pin the winner's.
-        assignment = candidates[0].assignment
-        apart = self._distinct_from_all([c.T_map_camera for c in candidates[refined:]], moved)
-        candidates[refined:] = [c for c, keep in zip(candidates[refined:], apart) if keep]
-        T = np.array(moved)
-        # Each copy is first looked at along a quarter of the rays (a 100-room building has 99 copies, and a full
-        # render costs 2 ms a pose): only the copies that may show the frame about as well as the answer are
-        # rendered in full. Those that cannot are no rival (two views alike enough to be twins agree with the
-        # frame within a few hundredths of each other) and are not listed.
-        coarse = scan.view.thinned(TWIN_THIN_STEP)
-        thin = coarse.render(self.field, T)
-        score = coarse.agreement(thin)
-        # A moved pose that shows the frame less well than the answer may only be a little off (real copies are
-        # never placed exactly): it is pulled onto the field, and kept there when that shows the frame better.
-        # The copies of a composed building are exact, and the field's alignment, good to a centimetre or two,
-        # would only blur the others.
-        low = np.flatnonzero(score < view_score - self.config.match.ambiguity_margin)
-        if len(low):
-            R, t = align_on_field(self.field, scan.score_xyz, T[low, :3, :3], T[low, :3, 3],
-                                  up=None if scan.floor is None else self.up,
-                                  iterations=TWIN_ALIGN_ITERATIONS, reach_m=TWIN_ALIGN_REACH_M)
-            aligned = _stack_poses(R, t)
-            thin_again = coarse.render(self.field, aligned)
-            again = coarse.agreement(thin_again)
-            better = again > score[low]
-            T[low[better]], score[low[better]] = aligned[better], again[better]
-            thin[low[better]] = thin_again[better]
-        near = np.flatnonzero(score >= view_score - self.config.match.ambiguity_margin - TWIN_THIN_SLACK)
-        if not len(near):
-            return []
-        copies, T = [copies[k] for k in near], T[near]
-        # in full: the rays of the first look are traced already
-        rendered = scan.view.render_completing(self.field, T, scan.view.thinned_rays(TWIN_THIN_STEP), thin[near])
-        score = scan.view.agreement(rendered)
-        out = []
-        carried_all = self.twins.carry_all(assignment, copies)
-        regions = self.maps.indices_at(T[:, :3, 3])
-        for k, T_k in enumerate(T.copy()):  # one array per pose, shared by its outcome and its candidate
-            carried = carried_all[k]
-            h = Hypothesis(T_k, 0.0, 0.0, 0.0, float(score[k]), source="twin", region=self.maps.regions[regions[k]].id,
-                           matches=[(int(i), self.graph.ids[n]) for i, n in enumerate(carried) if n >= 0])
-            outcome = RefineOutcome(T_k, None, 0, False, "field")
-            renders[outcome] = rendered[k]
-            out.append(Refined(float(score[k]), outcome, Candidate(T_k, float(score[k]), h, carried, rendered[k])))
-        return out
-
-    def _shows_objects(self, scan: Scan, T_map_camera: np.ndarray, poses: list[np.ndarray]) -> np.ndarray:
-        """(len(poses),) bool: whether each pose (a copy of T_map_camera in a room that repeats its room) has the
-        frame's large objects where it places them: each labelled object of the frame covering at least
-        RegionConfig.object_tiebreak_share of its view (`Scan.view_shares`) that T_map_camera places
-        (`_objects_placed`) must be placed by the pose too. A copy that lacks such an object (a building's copies
-        each miss some furniture) shows the frame differently by at least that share of the view, more than the
-        repeated-view oracle's 3 % of the pixels: it repeats no view of it and shows it no better, and is not
-        rendered (at 100 rooms, most of the twin check's 99 copies a frame)."""
-        large = scan.view_shares >= self.config.regions.object_tiebreak_share
-        pins = large & self._objects_placed(scan, T_map_camera)[0]
-        return self._objects_placed(scan, np.asarray(poses))[:, pins].all(axis=1)
-
-    def _roi_region(self, T_map_camera: np.ndarray, center_camera: np.ndarray) -> int:
-        """Index of the region holding the centre of a pose's region of interest (what `maps_at` builds)."""
-        return int(self.maps.indices_at(T_map_camera[:3, :3] @ center_camera + T_map_camera[:3, 3])[0])
-
-    def _report_refined(self, refined: list[Refined], candidates: list[Candidate]) -> None:
-        """In a building: the refined contenders' candidates are replaced, in `candidates` and in the refined
-        order (the winner first), by their refined poses and view agreements, so that the result reports the poses
-        the answer was judged by (the field alignment leaves a few centimetres)."""
-        first = []
-        for r in refined:
-            T, c = r.T_map_camera, r.candidate
-            first.append(replace(c, T_map_camera=T, score=r.score, hypothesis=replace(
-                c.hypothesis, T_map_camera=T, geometric_score=r.score, region=self.region_of(T))))
-        done = [r.candidate for r in refined] + first
-        candidates[:] = first + [c for c in candidates if not any(c is d or c.T_map_camera is d.T_map_camera for d in done)]
-
-    def _told_by_objects(self, scan: Scan, refined: list[Refined], rivals: list[Candidate], refine,
-                         candidates: list[Candidate], diag: Diagnostics) -> bool:
-        """In a building, when distinct poses look the same along the frame's rays: whether the frame's labelled
-        objects tell one of them from the rest. Each pose is credited with the frame's view in objects that have
-        a map node of their class within match_radius_m where it places them (`_objects_explained`); when one pose
-        explains clearly more than every other, it is the answer (refined first, and put first in `refined`, when
-        it was a rival).
-
-        Rooms that copy one another differ in the furniture one of them lacks; the depth along the rays barely
-        shows a chair, its label does: in the 100-room building, a labelled unique view was answered in a copy
-        (the view agreement tied among 61 rooms) where the true room's pose alone explained all three of the
-        frame's objects (8 % of its points more than any copy). A pose must explain
-        RegionConfig.object_tiebreak_share more of the frame's view than every other: the repeated-view oracle
-        calls views that differ by less than about one small object (3 % of the pixels) the same, and a sliver of
-        a chair at the frame's border, or a partly seen table whose centroid lands 0.6 m from its node, told
-        copies apart by 0.3-4 % (one of them wrongly)."""
-        poses = [refined[0].T_map_camera] + [c.T_map_camera for c in rivals]
-        explained = [self._objects_explained(scan, T) for T in poses]
-        k = int(np.argmax(explained))
-        second = max(explained[:k] + explained[k + 1:])
-        if explained[k] - second < self.config.regions.object_tiebreak_share:
-            return False
-        if k > 0:
-            self._put_first(rivals[k - 1], refined, refine, candidates)
-        diag.notes.append(f"the frame's objects: {100 * explained[k]:.1f} % of its view lies in objects whose map "
-                          f"node is where the answer places them, at most {100 * second:.1f} % at the "
-                          f"{len(poses) - 1} other poses that look the same")
-        return True
-
-    def _put_first(self, rival: Candidate, refined: list[Refined], refine, candidates: list[Candidate]) -> None:
-        """A rival a tie-break chose becomes the answer: its refined entry moved to the front of `refined`, or, when
-        it was not refined, refined now (`refine`, the refine stage's) and put there; `candidates` reordered to
-        match (`_report_refined`)."""
-        promoted = next((r for r in refined if r.T_map_camera is rival.T_map_camera), None)
-        if promoted is None:
-            promoted = refine(rival)
-        else:
-            refined.remove(promoted)
-        refined.insert(0, promoted)
-        self._report_refined(refined, candidates)
-
-    def _closest_fit_first(self, scan: Scan, refined: list[Refined], rivals: list[Candidate], refine,
-                           candidates: list[Candidate], diag: Diagnostics) -> None:
-        """In a building, when distinct poses look the same along the frame's rays (the answer will be
-        `ambiguous`): the one whose frame points lie closest to the map's surfaces, by TIE_FIT_MARGIN or more over
-        the answer, is put first (refined first when it was a rival). Its rivals stay: this orders them, it claims
-        nothing.
-
-        The rays (48 × 36, 4 cm + 2 % of the depth) see a surface at about the right depth as agreeing, and a
-        view over a low wall into the next room shows another chair there at about the same depth in each copy of
-        the room; the frame's points, one per 3 cm voxel (so a far surface counts by its area, not its pixels),
-        against the field at 2 cm see it. On the 100-room benchmark three unique views were answered `ambiguous`
-        with the truth second, 0.001-0.004 of view agreement behind and 0.06-0.09 ahead in this fit; over every
-        `ambiguous` answer of the 10- and 100-room and mixed buildings, it put the truth first 16 times (9 of them
-        repeated views, the truth's own room first among its copies) and never put a wrong pose before a right one."""
-        poses = np.stack([refined[0].T_map_camera] + [c.T_map_camera for c in rivals])
-        fit = score_poses(self.field, scan.down.xyz, poses[:, :3, :3], poses[:, :3, 3], tau_m=TIE_FIT_TAU_M)
-        k = int(np.argmax(fit))
-        if k == 0 or fit[k] < fit[0] + TIE_FIT_MARGIN:
-            return
-        self._put_first(rivals[k - 1], refined, refine, candidates)
-        diag.notes.append(f"of {len(poses)} poses that look the same, the frame's points lie closest to the map at "
-                          f"the one put first ({fit[k]:.3f} within {100 * TIE_FIT_TAU_M:.0f} cm, the answer before it "
-                          f"{fit[0]:.3f})")
-
-    def _promoted_twins(self, scan: Scan, refined: list[Refined], center_camera: np.ndarray,
-                        candidates: list[Candidate], renders: Renders) -> list[Candidate]:
-        """The copies of the winner's view (`_twin_views`, from refined[0]) that stand as its rivals: within the
-        ambiguity margin of its view agreement, or showing the same along the frame's rays
-        (RegionConfig.twin_agreement): `_look_alike`, as `_view_rivals` has them. Each is added to `candidates`."""
-        score, out = refined[0].score, refined[0].outcome
-        twins = self._twin_views(scan, out.T_map_camera, center_camera, candidates, renders, len(refined), score)
-        if not twins:
-            return []
-        alike = self._look_alike(scan, score, np.array([t.score for t in twins]),
-                                 np.stack([renders[t.outcome] for t in twins]), self._render_of(scan, renders, out))
-        standing = [t.candidate for t, a in zip(twins, alike) if a]
-        candidates.extend(standing)
-        return standing
-
-    def _render_of(self, scan: Scan, renders: Renders, outcome: RefineOutcome) -> np.ndarray:
-        """The map's depth along the frame's rays at an outcome's pose, rendered and kept when it has none yet: an
-        outcome `refine` left as it was (a pose the frame sees through) has none, whether it stays a rival or a
-        tie-break puts it first."""
-        if outcome not in renders:
-            renders[outcome] = scan.view.render(self.field, outcome.T_map_camera)[0]
-        return renders[outcome]
-
-    def _look_alike(self, scan: Scan, score: float, scores: np.ndarray, rendered: np.ndarray,
-                    mine: np.ndarray) -> np.ndarray:
-        """(h,) bool: which of h poses the answer cannot be told from — their view agreement `scores` within the
-        ambiguity margin of the answer's `score`, or their renders `rendered` ((h, r)) showing what the answer's
-        render `mine` ((r,)) shows along RegionConfig.twin_agreement of the frame's rays."""
-        return ((score - scores < self.config.match.ambiguity_margin)
-                | (scan.view.agreement(rendered, mine) >= self.config.regions.twin_agreement))
-
-    def _objects_explained(self, scan: Scan, T_map_camera: np.ndarray) -> float:
-        """The share of the frame's view (`Scan.view_shares`) in labelled objects the pose places
-        (`_objects_placed`)."""
-        return float(scan.view_shares[self._objects_placed(scan, T_map_camera)[0]].sum())
-
-    def _objects_placed(self, scan: Scan, poses: np.ndarray) -> np.ndarray:
-        """(p, objects) bool: whether each pose (poses (p, 4, 4) or (4, 4)) puts each of the frame's labelled
-        objects (`Scan.clusters`) with its centroid within match_radius_m of a map node of its class."""
-        P = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
-        placed = np.zeros((len(P), len(scan.clusters)), dtype=bool)
-        if not len(scan.clusters):
-            return placed
-        centroids = np.array([c.centroid for c in scan.clusters])
-        xyz = centroids @ P[:, :3, :3].transpose(0, 2, 1) + P[:, None, :3, 3]  # (p, objects, 3), as transform_points
-        radius = self.config.match.match_radius_m
-        for k, c in enumerate(scan.clusters):
-            placed[:, k] = self.graph.nearest_of_class(xyz[:, k], c.cls, radius) >= 0
-        return placed
-
-    def _view_rivals(self, refined: list[Refined], renders: Renders, candidates: list[Candidate],
-                     scan: Scan) -> tuple[bool, float, list[Candidate]]:
-        """In a building: (has a distinct rival, margin, the rivals the answer cannot be told from) of the winner,
-        refined[0] (the refined contenders and the copies of the winner's view, best first). A
-        pose distinct from the winner's is a rival when its view agreement lies within the ambiguity margin of the
-        winner's, or when the map along the frame's rays shows the same at both (RegionConfig.twin_agreement): a
-        room that repeats the view, which the frame's noise may rank either way. Refined contenders are compared
-        with the refined winner, the other candidates with the winner's candidate as the field alignment left both
-        (a refined pose would beat an unrefined one by the refinement alone). The margin is to the best distinct
-        pose, 0 when a twin stands."""
-        mc = self.config.match
-        score, winner = refined[0].score, refined[0].candidate
-        T, mine = refined[0].T_map_camera, self._render_of(scan, renders, refined[0].outcome)
-        rivals, margin, has_rival = [], score, False
-        for r in refined[1:]:
-            if not self._distinct(r.T_map_camera, T):
-                continue
-            has_rival, margin = True, min(margin, score - r.score)
-            if self._look_alike(scan, score, np.array([r.score]), self._render_of(scan, renders, r.outcome)[None],
-                                mine)[0]:
-                rivals.append(next(c for c in candidates if c.T_map_camera is r.T_map_camera))
-        done = [r.T_map_camera for r in refined] + [r.candidate.T_map_camera for r in refined]
-        apart = self._distinct_from_all([c.T_map_camera for c in candidates], done)
-        rest = [c for c, keep in zip(candidates, apart) if keep]
-        if rest:
-            has_rival = True
-            alike = self._look_alike(scan, winner.score, np.array([c.score for c in rest]),
-                                     np.stack([c.rendered for c in rest]), winner.rendered)
-            margin = min(margin, winner.score - max(c.score for c in rest))
-            rivals += [c for c, a in zip(rest, alike) if a]
-        if any(r.score < score - mc.ambiguity_margin for r in rivals):
-            margin = 0.0  # a twin: the same view, however the noise ranked it
-        return has_rival, margin, rivals
-
     def _rival_margin(self, scores: list[float], poses: list[np.ndarray]) -> tuple[bool, float]:
         """(has a distinct rival, margin) of poses sorted best first (refined contenders, or the candidates when
         only the best was refined): the rival is the best pose distinct from the winner, wherever it ranks. A
@@ -1416,7 +1035,7 @@ class Localizer:
             return [self._candidate(hyp, i, T, self._agreement_score(T, scan), origin) for i, T in enumerate(poses)]
         R, t = align_on_field(self.field, scan.score_xyz, hyp.R, hyp.t, up=None if scan.floor is None else self.up,
                               iterations=FIELD_ALIGN_ITERATIONS, reach_m=FIELD_ALIGN_REACH_M)
-        T = _stack_poses(R, t)
+        T = make_Ts(R, t)
         rendered = scan.view.render(self.field, T)
         score = scan.view.agreement(rendered)
         return [self._candidate(hyp, i, T[i], float(score[i]), origin, rendered[i]) for i in range(len(hyp))]
@@ -1511,13 +1130,6 @@ def _voxel_budget(points: FramePoints, voxel_m: float, budget: int) -> FramePoin
             voxel_m *= VOXEL_GROWTH
             sparse = voxel_downsample(points, voxel_m)
     return sparse
-
-
-def _stack_poses(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """(h, 3, 3) rotations and (h, 3) translations -> (h, 4, 4) poses."""
-    T = np.tile(np.eye(4), (len(R), 1, 1))
-    T[:, :3, :3], T[:, :3, 3] = R, t
-    return T
 
 
 def _single(T_map_camera: np.ndarray) -> Hypotheses:
