@@ -71,6 +71,23 @@ def test_score_poses_scores_each_pose_like_one_lookup() -> None:
     assert scores[0] > 0.9 and scores[2] == 0.0
 
 
+def test_score_poses_reads_the_cells_lookup_reads_under_any_pose() -> None:
+    """`field_kernels.score_poses` folds the division by the voxel into each pose's constants; under arbitrary
+    turned and shifted poses (the points off the cell boundaries) it reads the cells `lookup`'s division does."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(7)
+    room = rng.uniform([0, 0, 0], [2, 1.5, 1], size=(4000, 3))
+    field = DistanceField(room, voxel_m=0.03)
+    pts = rng.normal(scale=0.4, size=(200, 3))
+    R = Rotation.random(300, random_state=3).as_matrix()
+    t = rng.uniform([-0.5, -0.5, -0.5], [2.5, 2.0, 1.5], size=(300, 3))
+    scores = score_poses(field, pts, R, t, tau_m=0.1)
+    expected = [inlier_score(field.lookup(pts @ R[k].T + t[k]), 0.1) for k in range(len(R))]
+    assert np.allclose(scores, expected, rtol=0, atol=1e-6)  # (a float32 grid: lookup returns float32)
+    assert scores.min() < 0.05 and scores.max() > 0.3  # (poses off the map and on it)
+
+
 def test_a_stored_field_scores_poses_from_its_table_as_the_formula_does() -> None:
     """A building's quantized field is scored through a table of its 256 values (`field_kernels.score_poses` with
     a table): the same scores, bit for bit, as the formula per read, for each tau."""

@@ -53,13 +53,27 @@ def _cell(origin, voxel, hi, strides, x, y, z):
 
 @njit(cache=True, nogil=True, inline="always")
 def _axis(c, origin, voxel, hi):
-    # floor(u) + 1 = floor(u + 1), which truncation gives once it is known to be >= 0 (no call to floor). A
-    # division, not a product with the inverse: points on cell boundaries (a coarser grid's centres) must read the
+    # A division, not a product with the inverse: points on cell boundaries (a coarser grid's centres) must read the
     # cell numpy's (c - origin) / voxel puts them in.
-    cell = (c - origin) / voxel + 1.0
-    if not cell >= 0.0:  # negative, or NaN
+    return _index((c - origin) / voxel + 1.0, hi)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _index(u, hi):
+    # floor(u) for u = (c - origin) / voxel + 1, which truncation gives once it is known to be >= 0 (no call to
+    # floor), clamped to the border.
+    if not u >= 0.0:  # negative, or NaN
         return np.int64(0)
-    return np.int64(min(cell, hi))
+    return np.int64(min(u, hi))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cell_of_units(hi, strides, u, v, w):
+    """The flat cell of a point given in cell units, (x - origin) / voxel + 1 an axis (`_cell` less its divisions).
+    The loops over arbitrary poses (scores, rays, the field alignment) fold the division into each pose's or ray's
+    few constants: three divisions a read were a quarter of a 100-room frame's first look. (Their points never
+    lie on cell boundaries by construction, where the product with the inverse may round across one.)"""
+    return _index(u, hi[0]) * strides[0] + _index(v, hi[1]) * strides[1] + _index(w, hi[2]) * strides[2]
 
 
 @njit(cache=True, nogil=True)
@@ -76,13 +90,16 @@ def lookup(grid, scale, origin, voxel, hi, strides, x, y, z, out):
 
 @njit(cache=True, nogil=True, inline="always")
 def _pose_cells(origin, voxel, hi, strides, points, r, s, cells):
-    """cells[i] = the flat cell of r · points[i] + s."""
+    """cells[i] = the flat cell of r · points[i] + s (the pose scaled to cell units once, `_cell_of_units`)."""
+    inv = 1.0 / voxel
+    a00, a01, a02 = r[0, 0] * inv, r[0, 1] * inv, r[0, 2] * inv
+    a10, a11, a12 = r[1, 0] * inv, r[1, 1] * inv, r[1, 2] * inv
+    a20, a21, a22 = r[2, 0] * inv, r[2, 1] * inv, r[2, 2] * inv
+    b0, b1, b2 = (s[0] - origin[0]) * inv + 1.0, (s[1] - origin[1]) * inv + 1.0, (s[2] - origin[2]) * inv + 1.0
     for i in range(len(points)):
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-        cells[i] = _cell(origin, voxel, hi, strides,
-                         r[0, 0] * px + r[0, 1] * py + r[0, 2] * pz + s[0],
-                         r[1, 0] * px + r[1, 1] * py + r[1, 2] * pz + s[1],
-                         r[2, 0] * px + r[2, 1] * py + r[2, 2] * pz + s[2])
+        cells[i] = _cell_of_units(hi, strides, a00 * px + a01 * py + a02 * pz + b0, a10 * px + a11 * py + a12 * pz + b1,
+                                  a20 * px + a21 * py + a22 * pz + b2)
 
 
 @njit(cache=True, nogil=True)
@@ -134,6 +151,7 @@ def trace(grid, scale, origin, voxel, hi, strides, R, t, origin_camera, dirs_cam
     live = np.empty(TRACE_BATCH, dtype=np.int64)
     cells = np.empty(TRACE_BATCH, dtype=np.int64)
     flat_out = out.reshape(-1)
+    inv = 1.0 / voxel
     for first in range(0, n, TRACE_BATCH):
         count = min(TRACE_BATCH, n - first)
         for j in range(count):
@@ -143,6 +161,9 @@ def trace(grid, scale, origin, voxel, hi, strides, R, t, origin_camera, dirs_cam
                 o[j, a] = r_[a, 0] * origin_camera[0] + r_[a, 1] * origin_camera[1] + r_[a, 2] * origin_camera[2] + s[a]
                 d[j, a] = r_[a, 0] * dirs_camera[k, 0] + r_[a, 1] * dirs_camera[k, 1] + r_[a, 2] * dirs_camera[k, 2]
             per_depth[j] = math.sqrt(d[j, 0] ** 2 + d[j, 1] ** 2 + d[j, 2] ** 2)
+            for a in range(3):  # the ray in cell units from here on (`_cell_of_units`)
+                o[j, a] = (o[j, a] - origin[a]) * inv + 1.0
+                d[j, a] *= inv
             depth[j] = min_depth
             live[j] = j
             flat_out[first + j] = np.inf
@@ -152,8 +173,8 @@ def trace(grid, scale, origin, voxel, hi, strides, R, t, origin_camera, dirs_cam
                 break
             for q in range(n_live):
                 j = live[q]
-                cells[q] = _cell(origin, voxel, hi, strides, o[j, 0] + d[j, 0] * depth[j],
-                                 o[j, 1] + d[j, 1] * depth[j], o[j, 2] + d[j, 2] * depth[j])
+                cells[q] = _cell_of_units(hi, strides, o[j, 0] + d[j, 0] * depth[j], o[j, 1] + d[j, 1] * depth[j],
+                                          o[j, 2] + d[j, 2] * depth[j])
             kept = 0
             for q in range(n_live):
                 j = live[q]
@@ -180,10 +201,11 @@ def align(grid, scale, origin, voxel, hi, strides, points, R, t, up, turn_about_
     dof = 4 if turn_about_up else 6
     cells = np.empty((m, 7), dtype=np.int64)
     q = np.empty((m, 3))
-    offsets = np.zeros((7, 3))
+    inv = 1.0 / voxel
+    offsets = np.zeros((7, 3))  # the point and its neighbours a voxel away along each axis, in cell units
     for a in range(3):
-        offsets[1 + 2 * a, a] = voxel
-        offsets[2 + 2 * a, a] = -voxel
+        offsets[1 + 2 * a, a] = 1.0
+        offsets[2 + 2 * a, a] = -1.0
     J = np.empty(6)
     for h in range(len(R)):
         r_, s = R[h], t[h]
@@ -192,9 +214,11 @@ def align(grid, scale, origin, voxel, hi, strides, points, R, t, up, turn_about_
             for i in range(m):
                 for a in range(3):
                     q[i, a] = r_[a, 0] * points[i, 0] + r_[a, 1] * points[i, 1] + r_[a, 2] * points[i, 2] + s[a]
+                u = (q[i, 0] - origin[0]) * inv + 1.0
+                v = (q[i, 1] - origin[1]) * inv + 1.0
+                w = (q[i, 2] - origin[2]) * inv + 1.0
                 for o in range(7):  # the cells first, then the reads (`score_poses`)
-                    cells[i, o] = _cell(origin, voxel, hi, strides, q[i, 0] + offsets[o, 0], q[i, 1] + offsets[o, 1],
-                                        q[i, 2] + offsets[o, 2])
+                    cells[i, o] = _cell_of_units(hi, strides, u + offsets[o, 0], v + offsets[o, 1], w + offsets[o, 2])
             H = np.eye(dof) * 1e-6
             b = np.zeros(dof)
             used = 0
