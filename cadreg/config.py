@@ -336,8 +336,9 @@ class RegionConfig(_Section):
                                                  "on one matched object (or none): one object, a whiteboard seen in "
                                                  "part, pins a pose less than several do")
     search_max_nodes: int = Field(3000, ge=10, description="the label-free search's nodes kept per level in a "
-                                  "building (LabelFreeConfig.max_nodes in one room), at least: a building's search box "
-                                  "holds many rooms, and at 1200 the search cut its way past the view's room")
+                                  "building's search box of several regions, at least (LabelFreeConfig.max_nodes in "
+                                  "one room, and in a box of one region): a building's search box holds many rooms, "
+                                  "and at 1200 the search cut its way past the view's room")
     search_nodes_per_region: int = Field(80, ge=0, description="the label-free search's nodes kept per level in a "
                                          "building for each region its search box covers, when that is more than "
                                          "search_max_nodes: a building's coarse levels tie (`bbs.highest`), the more "

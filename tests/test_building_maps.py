@@ -189,11 +189,13 @@ def test_a_buildings_label_free_search_keeps_the_regions_node_budget(twin_rooms_
     frame, _ = twin_shared_view
     site = Site.load(twin_rooms_dir)
 
-    def search_note(label_free_nodes: int, building_nodes: int, per_region: int = 0) -> str:
+    def search_note(label_free_nodes: int, building_nodes: int, per_region: int = 0, room: str | None = None) -> str:
         config = LocalizeConfig(label_free=LabelFreeConfig(max_nodes=label_free_nodes),
                                 regions=RegionConfig(search_max_nodes=building_nodes,
                                                      search_nodes_per_region=per_region))
-        notes = Localizer.from_site(site, config).localize(replace(frame, labels=None)).diagnostics.notes
+        search = None if room is None else SearchRegion(region_ids=(room,))
+        notes = Localizer.from_site(site, config).localize(replace(frame, labels=None,
+                                                                   search_region=search)).diagnostics.notes
         return next(n for n in notes if n.startswith("label-free search"))
 
     # the building's budget (regions.search_max_nodes) bounds the search, not the one-room one (label_free.max_nodes)
@@ -202,6 +204,9 @@ def test_a_buildings_label_free_search_keeps_the_regions_node_budget(twin_rooms_
     # ... or, when more, regions.search_nodes_per_region for each of the regions the search box covers (both here)
     assert "node cap reached" in search_note(10, 10, per_region=100)
     assert "node cap reached" not in search_note(10, 10, per_region=50_000)
+    # a box of one room (here the one the client names; a weak graph answer's rooms alike) keeps a room's budget
+    assert "node cap reached" in search_note(10, 100_000, per_region=50_000, room="a")
+    assert "node cap reached" not in search_note(100_000, 10, room="a")
 
 
 def test_site_json_describes_the_field(twin_rooms_dir: Path) -> None:

@@ -957,9 +957,13 @@ class Localizer(BuildingViews):
         rc = self.config.regions
         found = []
         for box, floor_m, covered in self._search_boxes(scan, pyr.R_level_map, rooms):
-            # The budget grows with the rooms the box covers: their coarse levels tie (`bbs.highest`).
-            max_nodes = lf.max_nodes if len(self.maps) == 1 else max(rc.search_max_nodes,
-                                                                      rc.search_nodes_per_region * covered)
+            # The budget grows with the rooms the box covers: their coarse levels tie (`bbs.highest`). A box of one
+            # room (a candidate's, a region the client names) keeps a room's: at the building's minimum, the
+            # graph's weak candidates' rooms searched one by one cost ten times the whole building (a 100-room
+            # frame's 48 rooms: 3.3 M nodes, 430 ms); at a room's, every answer of the labelled building sets
+            # (10, 16, 100 rooms, mixed; clean and with harsh label noise) stayed, means 3-11 % lower.
+            max_nodes = lf.max_nodes if len(self.maps) == 1 or covered == 1 else max(
+                rc.search_max_nodes, rc.search_nodes_per_region * covered)
             z_range = None
             if labelled_floor and floor_m is not None:
                 # A labelled floor gives the camera's height: only a band about it is searched.
