@@ -71,8 +71,9 @@ def _index(u, hi):
 def _cell_of_units(hi, strides, u, v, w):
     """The flat cell of a point given in cell units, (x - origin) / voxel + 1 an axis (`_cell` less its divisions).
     The loops over arbitrary poses (scores, rays, the field alignment) fold the division into each pose's or ray's
-    few constants: three divisions a read were a quarter of a 100-room frame's first look. (Their points never
-    lie on cell boundaries by construction, where the product with the inverse may round across one.)"""
+    few constants: three divisions a read were a quarter of a 100-room frame's first look. (Arbitrary poses put no
+    point on a cell boundary, where the product with the inverse could round across one: on every benchmark set
+    the same cells were read, the same answers given.)"""
     return _index(u, hi[0]) * strides[0] + _index(v, hi[1]) * strides[1] + _index(w, hi[2]) * strides[2]
 
 

@@ -108,7 +108,7 @@ class Refined:
     (`Localizer._twin_views`: pulled onto the field, not refined).
 
     score : what contenders are ranked by: in a building the view agreement along the frame's rays, else the
-        agreement score (`Localizer._agreement_score`) less the see-through. outcome : the refinement (its
+        agreement score (`Localizer._agreement_score`) weighed by the see-through. outcome : the refinement (its
         `T_map_camera` is the refined pose). candidate : the candidate it started from. see_through : the share of
         the map in view that the frame sees through at the refined pose (0 for a copy).
     """
