@@ -94,10 +94,10 @@ NEAR_REACH_DEG = 5.0
 # Flat-surface normals sampled for the yaw candidates of the label-free search when the up estimate gave none.
 YAW_NORMAL_POINTS = 1000
 # The label-free search's leaves are polished (`bbs.polish`) twice, the second round only for those its first left
-# within the building's tie margin and this of the best: the second round's half steps raised a leaf's score by at
+# within RegionConfig.tie_margin and this of the best: the second round's half steps raised a leaf's score by at
 # most 0.12 (the 100-room frames without labels: 245 leaves a frame, 52 within 0.16 after the first round), and
 # only leaves that end within the tie margin are ranked by room. 100 rooms without labels: median -3 %, p90 -8 %,
-# every answer the same.
+# every answer the same. One room takes the same cut (its five leaves; every answer the same on its sets too).
 POLISH_LATER_GAIN = 0.14
 # An object's top is the 98th percentile of its points along up: the highest 2 % are mixed pixels and noise.
 TOP_PERCENTILE = 98
