@@ -597,7 +597,8 @@ def test_zenoh_fuzz_finds_no_internal_error(server, good) -> None:
         assert json.loads(got[0].ok.payload.to_bytes())["status"] in OK_STATUSES
         with poses_lock:
             poses.clear()
-        session.put(zenoh_wire.frames_key(SITE, "after-fuzz"), good["envelope"])
+        session.put(zenoh_wire.frames_key(SITE, "after-fuzz"), good["envelope"],
+                    congestion_control=zenoh.CongestionControl.BLOCK)  # not dropped behind the fuzz backlog
         deadline = time.monotonic() + 120
         answer = None
         while answer is None and time.monotonic() < deadline:

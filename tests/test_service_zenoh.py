@@ -132,7 +132,8 @@ def test_stream_mode_echoes_frame_ids_and_drops_the_oldest(server, session, fram
             done.set()
 
     sub = session.declare_subscriber(f"cadreg/{SITE}/poses/cam-1", on_pose)
-    pub = session.declare_publisher(f"cadreg/{SITE}/frames/cam-1")
+    # blocking: the frames dropped must be the service's choice (its queue of 2), not zenoh's full send queue
+    pub = session.declare_publisher(f"cadreg/{SITE}/frames/cam-1", congestion_control=zenoh.CongestionControl.BLOCK)
     time.sleep(0.3)
     # the first frame holds the only worker for a while; the device keeps sending, faster than the pool can go
     frame = frames[0][0]

@@ -195,7 +195,8 @@ def test_device_table_is_capped_and_idle_devices_expire(server, session, frames)
             left = [(d.device_id, len(d.frames), d.in_flight) for d in front._devices.values()]  # noqa: SLF001
         assert not left, left[:5]
         # a real device is still served
-        session.put(zenoh_wire.frames_key(SITE, "cam-real"), _envelope(frames[0][0], frame_id="real-1"))
+        session.put(zenoh_wire.frames_key(SITE, "cam-real"), _envelope(frames[0][0], frame_id="real-1"),
+                    congestion_control=zenoh.CongestionControl.BLOCK)
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline and not any(k.endswith("/cam-real") for k, _ in poses.bodies):
             time.sleep(0.05)
