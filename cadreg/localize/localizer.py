@@ -17,7 +17,8 @@ Everything site-dependent is built once in `from_site` and reused for every fram
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 import small_gicp
@@ -108,6 +109,30 @@ def compile_loops() -> None:
     start, the Dockerfile at build time."""
     for module in (field_kernels, grid_gicp, match, point_tree, room_twins):
         module.warm()
+
+
+@dataclass(eq=False)
+class RefineRun:
+    """What the refinements of one frame's contenders share (`Localizer._refine`).
+
+    contenders : the candidates refined first, the best first. near : in one room, the contender `_near_contender`
+    added (then every score is weighed by depth agreement), else None. source : the frame points the refinement
+    draws on (`_refine_source`); roi_points : those within γ of the frame's centre, within the point budget;
+    roi_frame_points : how many lay within γ before the budget. center_camera : the centre of the ROI, camera
+    frame. renders : a building's refined poses' renders. whole : the whole frame within the budget, made when a
+    refinement slid (`_unslid`)."""
+
+    scan: Scan
+    method: str
+    diag: Diagnostics
+    contenders: list[Candidate]
+    near: Candidate | None
+    source: FramePoints
+    roi_points: FramePoints
+    roi_frame_points: int
+    center_camera: np.ndarray
+    renders: Renders
+    whole: FramePoints | None = None
 
 
 class Localizer(BuildingViews):
@@ -523,6 +548,24 @@ class Localizer(BuildingViews):
     def _refine(self, scan: Scan, candidates: list[Candidate], method: str, diag: Diagnostics) -> Choice:
         """Candidates -> Choice: fine refinement of the best inside the region of interest, and of its distinct
         rivals within the ambiguity margin (up to MatchConfig.refine_contenders), re-ranked after refinement."""
+        run = self._refine_run(scan, candidates, method, diag)
+        refine = partial(self._refine_contender, run)
+        refined = [refine(c) for c in run.contenders]
+        taken_next = self._refine_past_see_through(refined, candidates, run.contenders, refine, diag)
+        if scan.view is not None:
+            has_rival, margin, rivals = self._rank_building(scan, refined, candidates, refine, run, diag)
+        else:
+            rivals = None
+            has_rival, margin = self._rank_room(refined, candidates, diag)
+        if scan.unverified:
+            diag.notes.append(f"{len(scan.unverified)} more regions tied with the best and were not verified")
+            has_rival, margin = True, 0.0
+        return self._choice(scan, refined, taken_next, has_rival, margin, rivals, run)
+
+    def _refine_run(self, scan: Scan, candidates: list[Candidate], method: str, diag: Diagnostics) -> RefineRun:
+        """What the contenders' refinements share: the contenders (in one room the best, its distinct rivals within
+        the ambiguity margin and the near contender; in a building `_view_contenders`) and the frame points of the
+        region of interest."""
         mc, rc = self.config.match, self.config.refine
         best = candidates[0]
         if scan.view is None:
@@ -540,138 +583,162 @@ class Localizer(BuildingViews):
         # from each frame point.
         source = self._refine_source(scan, method)
         roi_points, center_camera = crop_to_roi(source, rc.roi_radius_m, scan.center_camera)
-        roi_frame_points = len(roi_points)
         # The cost of a refinement is bounded by its inputs: at most MatchConfig.refine_points frame points
-        # (`_budget`), for at most refine_contenders hypotheses, each at most twice (the slide check below).
-        roi_points = self._budget(roi_points, method)
-        whole = None
-        renders = Renders()  # a building's refined poses: the map's depth along the frame's rays
+        # (`_budget`), for at most refine_contenders hypotheses, each at most twice (the slide check in
+        # `_refine_contender`).
+        return RefineRun(scan, method, diag, contenders, near, source, self._budget(roi_points, method), len(roi_points),
+                         center_camera, Renders())
 
-        def refine(c: Candidate) -> Refined:
-            nonlocal whole
-            maps = self.maps_at(c.T_map_camera, center_camera)
-            if c is not best and scan.zbuf is not None:
-                see = maps.view_check.see_through(c.T_map_camera, scan.zbuf, scan.K)
-                if see > HOPELESS_SEE_THROUGH * mc.max_see_through:
-                    # A rival the frame sees through this far at its coarse pose never refined into a credible
-                    # one: it keeps that pose and a score of 0, as its refinement would have earned.
-                    return Refined(0.0, RefineOutcome(c.T_map_camera, None, 0, False, method), c, see)
-            out = self._refine_one(maps.refine_map, roi_points, c.T_map_camera, method)
-            if roi_frame_points < len(source):
-                # The ROI leaves out the frame's far points; when those were what held the pose along some
-                # direction (a corner whose far wall lies beyond γ), the refinement slides and the whole frame
-                # fits worse than at its start. Then the whole frame (within the same point budget) refines it.
-                fit = lambda T: maps.refine_map.fitness(transform_points(T, scan.check_xyz), inlier_m=rc.inlier_m)[0]  # noqa: E731
-                start = fit(c.T_map_camera)
-                if fit(out.T_map_camera) < start - SLIDE_TOLERANCE:
-                    whole = whole or self._budget(source, method)
-                    again = self._refine_one(maps.refine_map, whole, c.T_map_camera, method)
-                    if fit(again.T_map_camera) > fit(out.T_map_camera):
-                        diag.notes.append("the ROI refinement slid: refined with the whole frame")
-                        out = again
-            see = 0.0 if scan.zbuf is None else self.maps_at(out.T_map_camera, center_camera).view_check.see_through(
-                out.T_map_camera, scan.zbuf, scan.K)
-            if scan.view is not None:
-                # Along the frame's rays the map in front of the measured depth already counts against the pose.
-                return Refined(float(scan.view.agreement(self._render_of(scan, renders, out))[0]), out, c, see)
-            # A pose at which the frame sees through the map ranks below one at which it does not, whatever its
-            # fit: the same factor as in the confidence.
-            score = self._agreement_score(out.T_map_camera, scan) * max(0.0, 1.0 - see / mc.max_see_through)
-            if near is not None and scan.zbuf is not None:
-                # Two basins of one hypothesis are told apart as the sensor sees them: the labels that ranked them
-                # are what put them side by side (`_near_contender`).
-                score *= maps.view_check.depth_agreement(out.T_map_camera, scan.zbuf, scan.K)
-            return Refined(score, out, c, see)
-
-        refined = [refine(c) for c in contenders]
-        taken_next: Candidate | None = None  # the candidate taken after every contender saw through the map
-        if all(r.see_through > mc.max_see_through for r in refined):
-            # Every contender puts the map in front of what the frame measured: the next distinct candidates
-            # (at most EXTRA_CONTENDERS more) are refined until one does not.
-            tried = [r.T_map_camera for r in refined]
-            limit = len(refined) + EXTRA_CONTENDERS
-            for c in candidates[1:]:
-                if len(refined) >= limit:
-                    break
-                if any(c is k for k in contenders) or not all(self._distinct(c.T_map_camera, T) for T in tried):
-                    continue
-                refined.append(refine(c))
-                tried.append(refined[-1].T_map_camera)
-                if refined[-1].see_through <= mc.max_see_through:
-                    diag.notes.append(f"the best {len(refined) - 1} poses saw through the map: took the next")
-                    taken_next = c
-                    break
-        rivals = None
+    def _refine_contender(self, run: RefineRun, c: Candidate) -> Refined:
+        """One contender refined and scored: in a building by its view agreement along the frame's rays, in one
+        room by its agreement score, both lowered by how far the frame sees through the map there."""
+        scan, mc = run.scan, self.config.match
+        maps = self.maps_at(c.T_map_camera, run.center_camera)
+        if c is not run.contenders[0] and scan.zbuf is not None:
+            see = maps.view_check.see_through(c.T_map_camera, scan.zbuf, scan.K)
+            if see > HOPELESS_SEE_THROUGH * mc.max_see_through:
+                # A rival the frame sees through this far at its coarse pose never refined into a credible
+                # one: it keeps that pose and a score of 0, as its refinement would have earned.
+                return Refined(0.0, RefineOutcome(c.T_map_camera, None, 0, False, run.method), c, see)
+        out = self._refine_one(maps.refine_map, run.roi_points, c.T_map_camera, run.method)
+        if run.roi_frame_points < len(run.source):
+            out = self._unslid(run, maps.refine_map, c, out)
+        see = 0.0 if scan.zbuf is None else self.maps_at(out.T_map_camera, run.center_camera).view_check.see_through(
+            out.T_map_camera, scan.zbuf, scan.K)
         if scan.view is not None:
+            # Along the frame's rays the map in front of the measured depth already counts against the pose.
+            return Refined(float(scan.view.agreement(self._render_of(scan, run.renders, out))[0]), out, c, see)
+        # A pose at which the frame sees through the map ranks below one at which it does not, whatever its
+        # fit: the same factor as in the confidence.
+        score = self._agreement_score(out.T_map_camera, scan) * max(0.0, 1.0 - see / mc.max_see_through)
+        if run.near is not None and scan.zbuf is not None:
+            # Two basins of one hypothesis are told apart as the sensor sees them: the labels that ranked them
+            # are what put them side by side (`_near_contender`).
+            score *= maps.view_check.depth_agreement(out.T_map_camera, scan.zbuf, scan.K)
+        return Refined(score, out, c, see)
+
+    def _unslid(self, run: RefineRun, refine_map: RefineMap, c: Candidate, out: RefineOutcome) -> RefineOutcome:
+        """The ROI leaves out the frame's far points; when those were what held the pose along some direction (a
+        corner whose far wall lies beyond γ), the refinement slides and the whole frame fits worse than at its
+        start. Then the whole frame (within the same point budget) refines it, and the better fit is kept."""
+        rc = self.config.refine
+        fit = lambda T: refine_map.fitness(transform_points(T, run.scan.check_xyz), inlier_m=rc.inlier_m)[0]  # noqa: E731
+        if fit(out.T_map_camera) >= fit(c.T_map_camera) - SLIDE_TOLERANCE:
+            return out
+        if run.whole is None:
+            run.whole = self._budget(run.source, run.method)
+        again = self._refine_one(refine_map, run.whole, c.T_map_camera, run.method)
+        if fit(again.T_map_camera) > fit(out.T_map_camera):
+            run.diag.notes.append("the ROI refinement slid: refined with the whole frame")
+            return again
+        return out
+
+    def _refine_past_see_through(self, refined: list[Refined], candidates: list[Candidate],
+                                 contenders: list[Candidate], refine, diag: Diagnostics) -> Candidate | None:
+        """When every contender puts the map in front of what the frame measured, the next distinct candidates (at
+        most EXTRA_CONTENDERS more) are refined into `refined` until one does not. Returns the candidate so taken,
+        else None."""
+        if not all(r.see_through > self.config.match.max_see_through for r in refined):
+            return None
+        tried = [r.T_map_camera for r in refined]
+        limit = len(refined) + EXTRA_CONTENDERS
+        for c in candidates[1:]:
+            if len(refined) >= limit:
+                break
+            if any(c is k for k in contenders) or not all(self._distinct(c.T_map_camera, T) for T in tried):
+                continue
+            refined.append(refine(c))
+            tried.append(refined[-1].T_map_camera)
+            if refined[-1].see_through <= self.config.match.max_see_through:
+                diag.notes.append(f"the best {len(refined) - 1} poses saw through the map: took the next")
+                return c
+        return None
+
+    def _rank_building(self, scan: Scan, refined: list[Refined], candidates: list[Candidate], refine,
+                       run: RefineRun, diag: Diagnostics) -> tuple[bool, float, list[Candidate]]:
+        """In a building: the refined contenders ranked by view agreement, the copies of the best's view looked at
+        (and promoted when they show the frame better), the rivals that look the same along the frame's rays found
+        and, when there are some, ordered by the frame's objects and fit (`building_views.py`). Returns (has a
+        distinct rival, margin, rivals)."""
+        mc, renders, center_camera = self.config.match, run.renders, run.center_camera
+        refined.sort(key=lambda r: -r.score)
+        self._report_refined(refined, candidates)
+        twins = self._twin_views(scan, refined[0].T_map_camera, center_camera, candidates, renders, len(refined),
+                                 refined[0].score)
+        for r in refined[1:]:
+            # A contender the answer cannot be told from: the copies of its view are looked at too. The truth's
+            # room may be a copy of the runner-up's room-relative view, not of the answer's (a room lacking
+            # a chair the frame sees shows the right view a little worse than another room a wrong one).
+            if refined[0].score - r.score >= mc.ambiguity_margin or not self._distinct(r.T_map_camera,
+                                                                                     refined[0].T_map_camera):
+                continue
+            more = self._twin_views(scan, r.T_map_camera, center_camera, candidates, renders, len(refined),
+                                    refined[0].score)
+            twins += [t for t in more if all(self._distinct(t.T_map_camera, u.T_map_camera) for u in twins)]
+        twins = self._promote_twins(scan, refined, twins, refine, candidates, renders, center_camera)
+        candidates.extend(t.candidate for t in twins)
+        has_rival, margin, rivals = self._view_rivals(refined + twins, renders, candidates, scan)
+        diag.notes.append(f"refined {len(refined)} of the best poses, view agreement "
+                          + ", ".join(f"{r.score:.3f}" for r in refined)
+                          + (f"; {len(rivals)} distinct poses look the same along the frame's rays" if rivals else ""))
+        if rivals and scan.clusters:
+            before = refined[0].candidate
+            told = self._told_by_objects(scan, refined, rivals, refine, candidates, diag)
+            if told and refined[0].candidate is not before:
+                # The objects put a rival first: the copies of its view were never looked at (the twin check
+                # ran from the pose it replaced). A copy that shows the frame as well stands as its rival.
+                # (A 100-room view repeated in four rooms was answered `ok` in one of them this way.)
+                twins = self._promoted_twins(scan, refined, center_camera, candidates, renders)
+                if twins:
+                    told = False
+                    rivals = rivals + twins
+                    diag.notes.append(f"{len(twins)} copies of the objects' pose show the frame as well")
+            if told:
+                # The frame's objects rule the other poses out: no rival stands, whatever the view margin.
+                has_rival, margin, rivals = False, mc.confident_margin, []
+        if rivals:
+            self._closest_fit_first(scan, refined, rivals, refine, candidates, diag)
+        return has_rival, margin, rivals
+
+    def _rank_room(self, refined: list[Refined], candidates: list[Candidate], diag: Diagnostics) -> tuple[bool, float]:
+        """In one room: the refined contenders ranked by score; (has a distinct rival, margin), with a rival standing
+        whenever a distinct candidate as close as the contenders was left unrefined."""
+        mc = self.config.match
+        best = candidates[0]
+        if len(refined) > 1:
             refined.sort(key=lambda r: -r.score)
-            self._report_refined(refined, candidates)
-            twins = self._twin_views(scan, refined[0].T_map_camera, center_camera, candidates, renders, len(refined),
-                                     refined[0].score)
-            for r in refined[1:]:
-                # A contender the answer cannot be told from: the copies of its view are looked at too. The truth's
-                # room may be a copy of the runner-up's room-relative view, not of the answer's (a room lacking
-                # a chair the frame sees shows the right view a little worse than another room a wrong one).
-                if refined[0].score - r.score >= mc.ambiguity_margin or not self._distinct(r.T_map_camera,
-                                                                                         refined[0].T_map_camera):
-                    continue
-                more = self._twin_views(scan, r.T_map_camera, center_camera, candidates, renders, len(refined),
-                                        refined[0].score)
-                twins += [t for t in more if all(self._distinct(t.T_map_camera, u.T_map_camera) for u in twins)]
-            twins = self._promote_twins(scan, refined, twins, refine, candidates, renders, center_camera)
-            candidates.extend(t.candidate for t in twins)
-            has_rival, margin, rivals = self._view_rivals(refined + twins, renders, candidates, scan)
-            diag.notes.append(f"refined {len(refined)} of the best poses, view agreement "
-                              + ", ".join(f"{r.score:.3f}" for r in refined)
-                              + (f"; {len(rivals)} distinct poses look the same along the frame's rays" if rivals else ""))
-            if rivals and scan.clusters:
-                before = refined[0].candidate
-                told = self._told_by_objects(scan, refined, rivals, refine, candidates, diag)
-                if told and refined[0].candidate is not before:
-                    # The objects put a rival first: the copies of its view were never looked at (the twin check
-                    # ran from the pose it replaced). A copy that shows the frame as well stands as its rival.
-                    # (A 100-room view repeated in four rooms was answered `ok` in one of them this way.)
-                    twins = self._promoted_twins(scan, refined, center_camera, candidates, renders)
-                    if twins:
-                        told = False
-                        rivals = rivals + twins
-                        diag.notes.append(f"{len(twins)} copies of the objects' pose show the frame as well")
-                if told:
-                    # The frame's objects rule the other poses out: no rival stands, whatever the view margin.
-                    has_rival, margin, rivals = False, mc.confident_margin, []
-            if rivals:
-                self._closest_fit_first(scan, refined, rivals, refine, candidates, diag)
+            diag.notes.append(f"refined {len(refined)} close hypotheses, scores " + ", ".join(f"{r.score:.3f}" for r in refined))
+            has_rival, margin = self._rival_margin([r.score for r in refined], [r.T_map_camera for r in refined])
         else:
-            if len(refined) > 1:
-                refined.sort(key=lambda r: -r.score)
-                diag.notes.append(f"refined {len(refined)} close hypotheses, scores " + ", ".join(f"{r.score:.3f}" for r in refined))
-                has_rival, margin = self._rival_margin([r.score for r in refined], [r.T_map_camera for r in refined])
-            else:
-                has_rival, margin = self._rival_margin([c.score for c in candidates], [c.T_map_camera for c in candidates])
-            # A distinct candidate as close to the best as the contenders, but beyond the refine_contenders refined,
-            # was never ruled out: the answer cannot claim to be the one.
-            unexamined = [c for c in candidates[1:] if best.score - c.score < mc.ambiguity_margin
-                          and not any(c is r.candidate for r in refined)
-                          and all(self._distinct(c.T_map_camera, r.T_map_camera) for r in refined)]
-            if unexamined:
-                diag.notes.append(f"{len(unexamined)} more distinct hypotheses as close as the refined ones were not refined")
-                has_rival, margin = True, 0.0
-        if scan.unverified:
-            diag.notes.append(f"{len(scan.unverified)} more regions tied with the best and were not verified")
+            has_rival, margin = self._rival_margin([c.score for c in candidates], [c.T_map_camera for c in candidates])
+        # A distinct candidate as close to the best as the contenders, but beyond the refine_contenders refined,
+        # was never ruled out: the answer cannot claim to be the one.
+        unexamined = [c for c in candidates[1:] if best.score - c.score < mc.ambiguity_margin
+                      and not any(c is r.candidate for r in refined)
+                      and all(self._distinct(c.T_map_camera, r.T_map_camera) for r in refined)]
+        if unexamined:
+            diag.notes.append(f"{len(unexamined)} more distinct hypotheses as close as the refined ones were not refined")
             has_rival, margin = True, 0.0
+        return has_rival, margin
+
+    def _choice(self, scan: Scan, refined: list[Refined], taken_next: Candidate | None, has_rival: bool, margin: float,
+                rivals: list[Candidate] | None, run: RefineRun) -> Choice:
+        """The winner, refined[0], with its fit to the map and its agreement with the frame's depth."""
+        rc, center_camera = self.config.refine, run.center_camera
         out, winner, see = refined[0].outcome, refined[0].candidate, refined[0].see_through
         fitness, rmse = self.maps_at(out.T_map_camera, center_camera).refine_map.fitness(
             transform_points(out.T_map_camera, scan.check_xyz), inlier_m=rc.inlier_m)
         if scan.view is not None:
             # In a building, along the frame's rays through the whole map: a region's map holds its neighbours
             # only 3 m out, and a view over the low walls of a composed building reaches farther.
-            agreement, coverage = scan.view.shared(self._render_of(scan, renders, out))
+            agreement, coverage = scan.view.shared(self._render_of(scan, run.renders, out))
         elif scan.zbuf is None:
             agreement, coverage = 1.0, 1.0
         else:
             agreement, coverage = self.maps_at(out.T_map_camera, center_camera).view_check.compare_depth(
                 out.T_map_camera, scan.zbuf, scan.K, scan.check_xyz)
         passed_over = winner is taken_next
-        return Choice(winner, out, margin, has_rival, fitness, rmse, center_camera, roi_frame_points, see, agreement,
+        return Choice(winner, out, margin, has_rival, fitness, rmse, center_camera, run.roi_frame_points, see, agreement,
                       coverage, rivals, passed_over)
 
     def _near_contender(self, candidates: list[Candidate], contenders: list[Candidate]) -> Candidate | None:
