@@ -216,7 +216,8 @@ class Bench:
             src, _ = small_gicp.preprocess_points(pts.xyz, rc.coarse_voxel_m, num_neighbors=10)
             T_coarse = loc.refine_map.coarse_align(src, T_init, max_correspondence_m=0.5)
             out = loc.refine_map.refine(pts, T_coarse, method=refine, epsilon=rc.epsilon, source_voxel_m=rc.source_voxel_m,
-                                        max_correspondence_m=rc.max_correspondence_m, max_iterations=rc.max_iterations)
+                                        max_correspondence_m=rc.max_correspondence_m, max_iterations=rc.max_iterations,
+                                        wide_voxel_m=rc.wide_voxel_m)
             T, status = out.T_map_camera, Status.OK.value
         else:
             raise InvalidArgument(f"unknown bench method {method!r}")

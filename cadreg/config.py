@@ -203,6 +203,8 @@ class RefineConfig(_Section):
     coarse_voxel_m: float = Field(0.08, gt=0, description="map and frame resolution of the coarse check of hypotheses")
     source_voxel_m: float = Field(0.04, gt=0, description="frame resolution for the fine refinement")
     max_correspondence_m: float = Field(0.1, gt=0)
+    wide_voxel_m: float = Field(0.1, gt=0, description="voxel of the Gaussian map small_gicp's wide pass pairs frame "
+                                "points with (VGICP; `refine.WIDE_PASS`)")
     max_iterations: int = Field(10, ge=1, description="per GICP pass; a start the coarse stage got right converges "
                                 "in 2–6 (2 / 4 / 17 at p50 / p90 / p99 on 7-Scenes), and a wrong one spent its budget "
                                 "oscillating: 30 -> 18 cut the 7-Scenes p99 by a quarter to a third, 18 -> 10 by a "

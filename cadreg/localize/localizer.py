@@ -232,6 +232,7 @@ class Localizer(BuildingViews):
         pay for it."""
         if len(self.maps) == 1:
             self.refine_map.fine_target()
+            self.refine_map.wide_voxels(self.config.refine.wide_voxel_m)
             self.refine_map.coarse_target()
             self.refine_map.fit_lab  # noqa: B018  (made on first read)
         # A building's FPFH features (the last resort, with no up direction) would cost seconds and a copy of
@@ -793,7 +794,7 @@ class Localizer(BuildingViews):
         rc = self.config.refine
         return refine_map.refine(points, T_start, method=method, epsilon=rc.epsilon, source_voxel_m=rc.source_voxel_m,
                                  max_correspondence_m=rc.max_correspondence_m, max_iterations=rc.max_iterations,
-                                 grid_max_iterations=rc.grid_max_iterations)
+                                 grid_max_iterations=rc.grid_max_iterations, wide_voxel_m=rc.wide_voxel_m)
 
     def _result(self, scan: Scan, candidates: list[Candidate], choice: Choice, top_k: int, diag: Diagnostics,
                 frame_id: str | None) -> LocalizationResult:
