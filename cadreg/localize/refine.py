@@ -35,7 +35,7 @@ MIN_ROI_POINTS = 100
 # nearest map point: a hash look-up instead of a KD-tree walk, a tenth of GICP's cost an iteration on 7-Scenes, where
 # a wrong contender's start spends its whole budget (18 ms a refinement, most of a slow frame). The narrow pass,
 # GICP, gives the pose as before. On every set (7-Scenes both ways, scene0470, Replica, 3DMatch) no answer got
-# worse: RedKitchen p99 122 -> 79 and 120 -> 93 ms, two wrong `ok` answers right (`README.md`, fourteenth session).
+# worse: RedKitchen p99 129 -> 85 and 120 -> 93 ms, two wrong `ok` answers right (`README.md`, fourteenth session).
 WIDE_PASS = 2.5
 # small_gicp's KD-tree finds the nearest map point of a frame point far from every map point (a part of the frame
 # the map never saw, a hypothesis metres off) by visiting most of the tree: a 3DMatch frame's 1438 refinement
@@ -261,13 +261,13 @@ class RefineMap:
             if len(near) <= GICP_NEIGHBORS:  # nothing of the frame lies near the map there: no GICP can run
                 return RefineOutcome(T_init, None, 0, False, method)
             src, _ = small_gicp.preprocess_points(near, source_voxel_m, num_neighbors=GICP_NEIGHBORS)
-            stop = dict(num_threads=1, max_iterations=max_iterations, translation_epsilon=epsilon,
-                        rotation_epsilon=epsilon)
+            each_pass = dict(num_threads=1, max_iterations=max_iterations, translation_epsilon=epsilon,
+                             rotation_epsilon=epsilon)
             wide = small_gicp.align(self.wide_voxels(wide_voxel_m), src, init_T_target_source=T_init,
-                                    max_correspondence_distance=WIDE_PASS * max_correspondence_m, **stop)
+                                    max_correspondence_distance=WIDE_PASS * max_correspondence_m, **each_pass)
             target, tree = self.fine_target()
             res = small_gicp.align(target, src, tree, init_T_target_source=np.asarray(wide.T_target_source),
-                                   registration_type="GICP", max_correspondence_distance=max_correspondence_m, **stop)
+                                   registration_type="GICP", max_correspondence_distance=max_correspondence_m, **each_pass)
             cov = covariance_from_hessian(np.asarray(res.H), 2.0 * float(res.error), int(res.num_inliers))
             return RefineOutcome(np.asarray(res.T_target_source), cov, int(res.iterations), bool(res.converged), method)
         if method == "color_gicp":
