@@ -115,6 +115,34 @@ def test_a_buildings_leaves_stay_finer_than_the_score() -> None:
                                           margin_m=0.0, max_cells=100_000)
 
 
+def test_child_sums_are_the_children_and_bounds_numpy_made() -> None:
+    """The search's compiled expansion gives the children numpy's broadcasts gave (each node's 2 x 2 x 2 cubes half
+    its size, x outermost, those past the domain's last cell dropped), in the same order, with the same sums."""
+    from cadreg.localize import field_kernels
+
+    rng = np.random.default_rng(3)
+    dims = np.array([13, 11, 9])
+    grid = rng.integers(0, SCALE + 1, int(np.prod(dims)), dtype=np.uint8)
+    strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
+    offsets = rng.integers(0, 3 * strides[0], (4, 25))  # 4 yaws' rows of 25 point offsets
+    hi = np.array([9, 8, 6], dtype=np.int64)  # the domain's last corner cell, inclusive
+    step = 2
+    rows = rng.integers(0, 4, 40)
+    cells = np.stack([rng.integers(0, h + 1, 40) for h in hi], axis=1)  # some at the domain's end: children dropped
+    delta = np.array([[i, j, k] for i in (0, step) for j in (0, step) for k in (0, step)])
+    want_cells = (cells[:, None, :] + delta[None]).reshape(-1, 3)
+    want_rows = np.repeat(rows, 8)
+    inside = np.all(want_cells <= hi, axis=1)
+    want_cells, want_rows = want_cells[inside], want_rows[inside]
+    want = grid[offsets[want_rows] + (want_cells @ strides)[:, None]].astype(np.int64).sum(axis=1)
+    out_rows, out_cells, out = np.empty(320, dtype=np.int64), np.empty((320, 3), dtype=np.int64), np.empty(320, dtype=np.int64)
+    count = field_kernels.child_sums(grid, offsets, strides, hi, step, rows, cells, out_rows, out_cells, out)
+    assert 0 < count == len(want) < 320
+    np.testing.assert_array_equal(out_rows[:count], want_rows)
+    np.testing.assert_array_equal(out_cells[:count], want_cells)
+    np.testing.assert_array_equal(out[:count], want)
+
+
 def test_highest_keeps_the_highest_values_and_a_random_choice_of_the_tied() -> None:
     from cadreg.localize.bbs import best_first, highest
 

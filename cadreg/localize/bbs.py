@@ -5,7 +5,8 @@ score grid over the map (how close each cell is to a map surface) and a pyramid 
 built once per site. A node of the search is a yaw and a cube of 2^h × 2^h × 2^h camera positions; the sum of the
 level-h grid at the node's corner plus each frame point is an upper bound of the score of every position in the
 cube, so whole cubes are dropped when their bound cannot reach the best leaf found. Nodes are expanded in batches
-(a compiled sum over nodes × points, `field_kernels.sums_at`), best first with a greedy dive for the first bound,
+(compiled sums over nodes × points: `field_kernels.sums_at` for the roots, `child_sums` for each level's children
+and their bounds at once), best first with a greedy dive for the first bound,
 and the number of nodes kept per level is capped so that the cost of a frame is bounded by its inputs, not by its
 luck.
 
@@ -170,13 +171,16 @@ class GridPyramid:
             stats.nodes += len(yaw)
             return out
 
-        def children(level: int, yaw: np.ndarray, cell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            step = 2 ** (level - 1)
-            delta = np.array([[i, j, k] for i in (0, step) for j in (0, step) for k in (0, step)])
-            cc = (cell[:, None, :] + delta[None]).reshape(-1, 3)
-            yy = np.repeat(yaw, len(delta))
-            inside = np.all(cc <= hi, axis=1)
-            return yy[inside], cc[inside]
+        def children(level: int, yaw: np.ndarray, cell: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            """The children of nodes of `level` that lie in the domain, parent by parent, with their bounds."""
+            out_yaw = np.empty(8 * len(yaw), dtype=np.int64)
+            out_cell = np.empty((8 * len(yaw), 3), dtype=np.int64)
+            out_bound = np.empty(8 * len(yaw), dtype=np.int64)
+            count = field_kernels.child_sums(grids[level - 1], offs, self.strides, hi, 2 ** (level - 1),
+                                             np.ascontiguousarray(yaw, dtype=np.int64),
+                                             np.ascontiguousarray(cell, dtype=np.int64), out_yaw, out_cell, out_bound)
+            stats.nodes += count
+            return out_yaw[:count], out_cell[:count], out_bound[:count]
 
         b = bound(H, yi, corner)
         # A first bound to prune with: greedy dives from the best roots to a leaf.
@@ -184,10 +188,9 @@ class GridPyramid:
         order = np.argsort(-b)[:dives]
         dy, dc = yi[order], corner[order]
         for level in range(H, 0, -1):
-            cy, cc = children(level, dy, dc)
+            cy, cc, cb = children(level, dy, dc)
             if len(cy) == 0:
                 break
-            cb = bound(level - 1, cy, cc)
             # The best child of each dive (children of one parent are consecutive, 8 or fewer).
             picks = []
             for parent_yaw, parent_cell in zip(dy, dc):
@@ -203,8 +206,7 @@ class GridPyramid:
             if len(keep) > max_nodes:
                 stats.capped = True
                 keep = keep[highest(b[keep], max_nodes, rng)]
-            yi, corner = children(level, yi[keep], corner[keep])
-            b = bound(level - 1, yi, corner)
+            yi, corner, b = children(level, yi[keep], corner[keep])
             if level == 1 and len(b):
                 best = max(best, int(b.max()))
         keep = np.flatnonzero(b >= keep_ratio * best)

@@ -284,6 +284,42 @@ def sums_at(grid, offsets, rows, bases, out):
         out[a] = total
 
 
+@njit(cache=True, nogil=True)
+def child_sums(grid, offsets, strides, hi, step, rows, cells, out_rows, out_cells, out):
+    """The label-free search's children of nodes (`bbs.GridPyramid.search`) with their bounds, in one pass: for each
+    node a (its yaw's row rows[a] of point offsets, its corner cell cells[a] (3,)), the cubes whose corners lie
+    `step` cells or none further along each axis (x outermost, z innermost), those within hi (inclusive) kept, in
+    that order, into out_rows and out_cells, each with `sums_at`'s sum over grid (its level) at its corner in out.
+    Returns how many were written (at most 8 a node). What numpy's broadcasts, mask and product did in five passes
+    over 8 × the nodes' arrays (8 ms of a 100-room frame's search), with the same children in the same order and
+    the same integer sums."""
+    n = offsets.shape[1]
+    count = 0
+    for a in range(len(rows)):
+        row = offsets[rows[a]]
+        for di in (0, step):
+            c0 = cells[a, 0] + di
+            if c0 > hi[0]:
+                continue
+            for dj in (0, step):
+                c1 = cells[a, 1] + dj
+                if c1 > hi[1]:
+                    continue
+                for dk in (0, step):
+                    c2 = cells[a, 2] + dk
+                    if c2 > hi[2]:
+                        continue
+                    base = c0 * strides[0] + c1 * strides[1] + c2 * strides[2]
+                    total = 0
+                    for i in range(n):
+                        total += grid[row[i] + base]
+                    out_rows[count] = rows[a]
+                    out_cells[count, 0], out_cells[count, 1], out_cells[count, 2] = c0, c1, c2
+                    out[count] = total
+                    count += 1
+    return count
+
+
 def warm() -> None:
     """Compile (or load from numba's cache) every loop for both kinds of grid, so that no frame pays for it: a
     first compilation takes seconds, a cached one a fraction of one."""
@@ -298,5 +334,8 @@ def warm() -> None:
         trace(*args, R, t, np.zeros(3), np.array([[0.0, 0.0, 1.0]]), 0.5, 1.0, 0.1, 0.1, 4, 0.0, np.empty((1, 1)))
         sums_at(args[0], np.zeros((1, 1), dtype=np.int64), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
                 np.empty(1, dtype=np.int64))
+        child_sums(args[0], np.zeros((1, 1), dtype=np.int64), args[5], np.ones(3, dtype=np.int64), 1,
+                   np.zeros(1, dtype=np.int64), np.zeros((1, 3), dtype=np.int64), np.empty(8, dtype=np.int64),
+                   np.empty((8, 3), dtype=np.int64), np.empty(8, dtype=np.int64))
         for about_up in (True, False):
             align(*args, p, R.copy(), t.copy(), np.array([0.0, 0.0, 1.0]), about_up, 1, 0.5, 0.1, 0.1)
