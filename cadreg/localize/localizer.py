@@ -635,7 +635,8 @@ class Localizer(BuildingViews):
         return out
 
     def _refine_past_see_through(self, refined: list[Refined], candidates: list[Candidate],
-                                 contenders: list[Candidate], refine, diag: Diagnostics) -> Candidate | None:
+                                 contenders: list[Candidate], refine: Callable[[Candidate], Refined],
+                                 diag: Diagnostics) -> Candidate | None:
         """When every contender puts the map in front of what the frame measured, the next distinct candidates (at
         most EXTRA_CONTENDERS more) are refined into `refined` until one does not. Returns the candidate so taken,
         else None."""
@@ -655,7 +656,8 @@ class Localizer(BuildingViews):
                 return c
         return None
 
-    def _rank_building(self, scan: Scan, refined: list[Refined], candidates: list[Candidate], refine,
+    def _rank_building(self, scan: Scan, refined: list[Refined], candidates: list[Candidate],
+                       refine: Callable[[Candidate], Refined],
                        run: RefineRun, diag: Diagnostics) -> tuple[bool, float, list[Candidate]]:
         """In a building: the refined contenders ranked by view agreement, the copies of the best's view looked at
         (and promoted when they show the frame better), the rivals that look the same along the frame's rays found
