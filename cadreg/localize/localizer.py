@@ -552,16 +552,16 @@ class Localizer(BuildingViews):
         run = self._refine_run(scan, candidates, method, diag)
         refine = partial(self._refine_contender, run)
         refined = [refine(c) for c in run.contenders]
-        taken_next = self._refine_past_see_through(refined, candidates, run.contenders, refine, diag)
+        taken_next = self._refine_past_see_through(run, refined, candidates, refine)
         if scan.view is not None:
-            has_rival, margin, rivals = self._rank_building(scan, refined, candidates, refine, run, diag)
+            has_rival, margin, rivals = self._rank_building(run, refined, candidates, refine)
         else:
             rivals = None
             has_rival, margin = self._rank_room(refined, candidates, diag)
         if scan.unverified:
             diag.notes.append(f"{len(scan.unverified)} more regions tied with the best and were not verified")
             has_rival, margin = True, 0.0
-        return self._choice(scan, refined, taken_next, has_rival, margin, rivals, run)
+        return self._choice(run, refined, taken_next, has_rival, margin, rivals)
 
     def _refine_run(self, scan: Scan, candidates: list[Candidate], method: str, diag: Diagnostics) -> RefineRun:
         """What the contenders' refinements share: the contenders (in one room the best, its distinct rivals within
@@ -634,9 +634,8 @@ class Localizer(BuildingViews):
             return again
         return out
 
-    def _refine_past_see_through(self, refined: list[Refined], candidates: list[Candidate],
-                                 contenders: list[Candidate], refine: Callable[[Candidate], Refined],
-                                 diag: Diagnostics) -> Candidate | None:
+    def _refine_past_see_through(self, run: RefineRun, refined: list[Refined], candidates: list[Candidate],
+                                 refine: Callable[[Candidate], Refined]) -> Candidate | None:
         """When every contender puts the map in front of what the frame measured, the next distinct candidates (at
         most EXTRA_CONTENDERS more) are refined into `refined` until one does not. Returns the candidate so taken,
         else None."""
@@ -647,23 +646,23 @@ class Localizer(BuildingViews):
         for c in candidates[1:]:
             if len(refined) >= limit:
                 break
-            if any(c is k for k in contenders) or not all(self._distinct(c.T_map_camera, T) for T in tried):
+            if any(c is k for k in run.contenders) or not all(self._distinct(c.T_map_camera, T) for T in tried):
                 continue
             refined.append(refine(c))
             tried.append(refined[-1].T_map_camera)
             if refined[-1].see_through <= self.config.match.max_see_through:
-                diag.notes.append(f"the best {len(refined) - 1} poses saw through the map: took the next")
+                run.diag.notes.append(f"the best {len(refined) - 1} poses saw through the map: took the next")
                 return c
         return None
 
-    def _rank_building(self, scan: Scan, refined: list[Refined], candidates: list[Candidate],
-                       refine: Callable[[Candidate], Refined],
-                       run: RefineRun, diag: Diagnostics) -> tuple[bool, float, list[Candidate]]:
+    def _rank_building(self, run: RefineRun, refined: list[Refined], candidates: list[Candidate],
+                       refine: Callable[[Candidate], Refined]) -> tuple[bool, float, list[Candidate]]:
         """In a building: the refined contenders ranked by view agreement, the copies of the best's view looked at
         (and promoted when they show the frame better), the rivals that look the same along the frame's rays found
         and, when there are some, ordered by the frame's objects and fit (`building_views.py`). Returns (has a
         distinct rival, margin, rivals)."""
-        mc, renders, center_camera = self.config.match, run.renders, run.center_camera
+        scan, diag, renders, center_camera = run.scan, run.diag, run.renders, run.center_camera
+        mc = self.config.match
         refined.sort(key=lambda r: -r.score)
         self._report_refined(refined, candidates)
         twins = self._twin_views(scan, refined[0].T_map_camera, center_camera, candidates, renders, len(refined),
@@ -724,10 +723,10 @@ class Localizer(BuildingViews):
             has_rival, margin = True, 0.0
         return has_rival, margin
 
-    def _choice(self, scan: Scan, refined: list[Refined], taken_next: Candidate | None, has_rival: bool, margin: float,
-                rivals: list[Candidate] | None, run: RefineRun) -> Choice:
+    def _choice(self, run: RefineRun, refined: list[Refined], taken_next: Candidate | None, has_rival: bool,
+                margin: float, rivals: list[Candidate] | None) -> Choice:
         """The winner, refined[0], with its fit to the map and its agreement with the frame's depth."""
-        rc, center_camera = self.config.refine, run.center_camera
+        scan, rc, center_camera = run.scan, self.config.refine, run.center_camera
         out, winner, see = refined[0].outcome, refined[0].candidate, refined[0].see_through
         fitness, rmse = self.maps_at(out.T_map_camera, center_camera).refine_map.fitness(
             transform_points(out.T_map_camera, scan.check_xyz), inlier_m=rc.inlier_m)
