@@ -231,7 +231,7 @@ def test_fpfh_in_a_building_searches_one_room_never_the_whole_building(twin_room
     assert loc.maps.index(a).fpfh is not None and loc._fpfh is None  # one room's features, not the building's
     assert len(loc.maps.index(a).fpfh.target.points) < len(site.cloud("raw").points)
     # the room's own box, not its refinement map's halo of the neighbour's points
-    from cadreg.localize.localizer import ROOM_MARGIN_M
+    from cadreg.localize.fallback_stage import ROOM_MARGIN_M
     target = np.asarray(loc.maps.index(a).fpfh.target.points)
     assert np.all(target >= a.bounds[0] - ROOM_MARGIN_M - 1e-6) and np.all(target <= a.bounds[1] + ROOM_MARGIN_M + 1e-6)
     halo = loc.maps.index(a).refine_map.xyz

@@ -112,7 +112,7 @@ def test_a_near_basin_the_labels_ranked_first_loses_to_the_pose_the_depth_shows(
     which no distinct-hypothesis rule refines (the two are one hypothesis at 30 cm). Refined as well
     (`_near_contender`) and told apart by depth (0.98 against 0.82 of the view), the right one is the answer;
     without, the wrong one was answered `ok`, confidence 0.93."""
-    import cadreg.localize.localizer as localizer_module
+    import cadreg.localize.refine_stage as refine_stage
     from cadreg import Localizer, Site
     from cadreg.bench import Bench
     from cadreg.geometry import pose_errors
@@ -125,7 +125,7 @@ def test_a_near_basin_the_labels_ranked_first_loses_to_the_pose_the_depth_shows(
     res = loc.localize(noisy)
     assert any("refined 2 close hypotheses" in n for n in res.diagnostics.notes)
     assert res.status.value == "ok" and pose_errors(res.T_map_camera, T_true)[0] < 0.05
-    monkeypatch.setattr(localizer_module, "NEAR_REACH_M", 1e9)  # no candidate is beyond a contender's reach
+    monkeypatch.setattr(refine_stage, "NEAR_REACH_M", 1e9)  # no candidate is beyond a contender's reach
     before = loc.localize(noisy)
     assert pose_errors(before.T_map_camera, T_true)[0] > 0.2
 
@@ -135,7 +135,7 @@ def test_a_near_contender_is_a_close_candidate_beyond_every_contenders_reach(sce
     """`_near_contender` picks the best candidate within the contender margin that no refined pose's basin holds
     (NEAR_REACH_M / NEAR_REACH_DEG from each) and that is no distinct hypothesis (those are contenders of their own)."""
     from cadreg import Localizer, Site
-    from cadreg.localize.localizer import NEAR_REACH_M
+    from cadreg.localize.refine_stage import NEAR_REACH_M
     from cadreg.localize.stages import Candidate
 
     loc = Localizer.from_site(Site.load(scene0470_site_dir))

@@ -302,7 +302,7 @@ def test_a_rival_the_frame_sees_through_at_its_coarse_pose_is_not_refined(scene,
     """A contender other than the best at which the frame sees through the map far beyond max_see_through keeps its
     coarse pose and a score of 0 without a refinement (each costs a GICP, and such a one never became credible);
     it still counts as the distinct rival it is."""
-    import cadreg.localize.localizer as localizer_module
+    import cadreg.localize.refine_stage as refine_stage
     from cadreg.localize.stages import Candidate, StageTimer
     from cadreg.result import Diagnostics, Hypothesis
 
@@ -327,7 +327,7 @@ def test_a_rival_the_frame_sees_through_at_its_coarse_pose_is_not_refined(scene,
     choice = localizer._refine(scan, [best, rival], "small_gicp", diag)
     assert all(np.allclose(s, T) for s in starts)  # only the best was refined (and maybe its slide check)
     assert choice.candidate is best and choice.has_rival and choice.margin > 0.5
-    monkeypatch.setattr(localizer_module, "HOPELESS_SEE_THROUGH", 1e9)  # the rule off: the rival is refined too
+    monkeypatch.setattr(refine_stage, "HOPELESS_SEE_THROUGH", 1e9)  # the rule off: the rival is refined too
     starts.clear()
     localizer._refine(scan, [best, rival], "small_gicp", diag)
     assert any(np.allclose(s, ahead) for s in starts)

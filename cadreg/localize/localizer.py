@@ -7,8 +7,9 @@
     verify      a coarse GICP pulls each distinct hypothesis (and a client's prior) in, ranked by geometry, labels
                 and colour; when the graph's best is weak (no labels, no objects, no match) the label-free
                 search joins (branch-and-bound over x, y, z, yaw, `bbs.py`), FPFH + RANSAC only without an up
+                (`fallback_stage.py`)
     refine      fine refinement inside the region of interest of the best, and of its close rivals; in a building,
-                the copies of its view in the rooms that repeat it (`building_views.py`)
+                the copies of its view in the rooms that repeat it (`refine_stage.py`, `building_views.py`)
     result      status, confidence and diagnostics
 
 Everything site-dependent is built once in `from_site` and reused for every frame.
@@ -17,8 +18,7 @@ Everything site-dependent is built once in `from_site` and reused for every fram
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
-from functools import partial
+from dataclasses import replace
 
 import numpy as np
 import small_gicp
@@ -30,24 +30,26 @@ from ..geometry import make_Ts, rotation_between, transform_points
 from ..result import Diagnostics, Hypothesis, LocalizationResult, Match, Refinement, Roi, ScanObject, Status
 from ..pointset import PointSet
 from ..site.bundle import Site
-from ..site.regions import CAMERA_MARGIN_M, Region
+from ..site.regions import Region
 from .cluster import cluster_objects
 from .color_gicp import rgb_to_lab
-from .bbs import GridPyramid, map_direction_histogram, polish, yaw_candidates
-from .building_views import BuildingViews, Renders
+from .bbs import GridPyramid, map_direction_histogram
+from .building_views import BuildingViews
 from . import field_kernels, grid_gicp, match, point_tree
 from . import twins as room_twins
 from .fallback import FpfhRansac
+from .fallback_stage import FallbackStage
 from .field_view import FieldView, align_on_field
 from .twins import SHAPE_POINTS, RoomTwins
 from .gravity import estimate_floor, map_floor_height, map_up_axis, planar_normals
 from .match import (Hypotheses, MapGraph, distinct_best, distinct_pairs, gravity_hypotheses, kabsch_hypotheses,
                     score_graph)
-from .points import FramePoints, frame_to_points, voxel_downsample
-from .refine import GICP_NEIGHBORS, REFINE_METHODS, RefineMap, RefineOutcome, crop_to_roi
+from .points import frame_to_points, voxel_budget, voxel_downsample
+from .refine import GICP_NEIGHBORS, REFINE_METHODS, RefineMap
+from .refine_stage import RefineStage
 from .regions import RegionIndex, RegionMaps, region_cloud
 from .score import DistanceField, ViewCheck, score_poses
-from .stages import (Candidate, Choice, Refined, Scan, StageTimer, answer_status, confidence, low_overlap_confidence,
+from .stages import (Candidate, Choice, Scan, StageTimer, answer_status, confidence, low_overlap_confidence,
                      pose_std_m)
 from .tracking import Tracked, TrackState, track_frame
 
@@ -62,18 +64,6 @@ FIRST_LOOK_COARSENING = 4
 # Cheapest first. FPFH + RANSAC runs only when the label-free search could not (no up direction): it costs
 # ten times more and, knowing nothing of gravity, is no better where the search finds nothing.
 FALLBACKS = ("bbs", "fpfh-ransac")
-# A building's FPFH + RANSAC registers against one room's box grown by this (walls scanned a little outside it).
-ROOM_MARGIN_M = 0.3
-# A point budget's voxel grows by this factor until the points fit (`_voxel_budget`).
-VOXEL_GROWTH = 1.15
-# Distinct candidates refined beyond the contenders when every contender sees through the map: two, since a
-# frame of a place the map lacks sees through it at every pose, and each costs a refinement.
-EXTRA_CONTENDERS = 2
-# A rival (any contender but the best) seeing through the map this many times MatchConfig.max_see_through at its
-# coarse pose is not refined: of about 800 refinements of 7-Scenes frames, none that started above 1.5 times it
-# ended at or below it (the largest start of one that did: 1.1 times), and such rivals were most of the cost of
-# frames looking past the map's edge.
-HOPELESS_SEE_THROUGH = 1.5
 # Frame points of the coarse GICP of each hypothesis, at most. 600 (was 1000): the labelled renders' median fell by
 # an eighth (verify is 8 coarse GICPs), with the same answers there and on 7-Scenes, and 3 more right poses in the
 # 10-room building.
@@ -81,25 +71,11 @@ COARSE_POINTS = 600
 # A hypothesis whose coarse GICP would hand over more than this share of its points far from the map gets a cloud
 # of the others (`_coarse_align`): rebuilding one costs 0.5 ms, so hypotheses with a few far points keep the shared one.
 COARSE_FAR_SHARE = 0.25
-# A refinement whose whole-frame fitness fell by more than this from its start slid (see `_refine`).
-SLIDE_TOLERANCE = 0.01
 # The field alignment of a building's hypotheses (`field_view.align_on_field`): from a reach of half a metre (the
 # field's truncation) down to 6 cm in 15 steps. On the 10-room benchmark's frames, poses 40 cm and 5° off came
 # within 5 cm / 5° in 86 % of the cases (72 % from a 25 cm reach in 10 steps; 20 cm off: 98 %), at 1.4 ms each.
 FIELD_ALIGN_ITERATIONS = 15
 FIELD_ALIGN_REACH_M = (0.5, 0.06)
-# A refinement settles into the basin it starts in: a candidate farther than this from every refined pose is
-# another start (`_near_contender`), even when it is no distinct hypothesis (MatchConfig.distinct_translation_m).
-NEAR_REACH_M = 0.1
-NEAR_REACH_DEG = 5.0
-# Flat-surface normals sampled for the yaw candidates of the label-free search when the up estimate gave none.
-YAW_NORMAL_POINTS = 1000
-# The label-free search's leaves are polished (`bbs.polish`) twice, the second round only for those its first left
-# within RegionConfig.tie_margin and this of the best: the second round's half steps raised a leaf's score by at
-# most 0.12 (the 100-room frames without labels: 245 leaves a frame, 52 within 0.16 after the first round), and
-# only leaves that end within the tie margin are ranked by room. 100 rooms without labels: median -3 %, p90 -8 %,
-# every answer the same. One room takes the same cut (its five leaves; every answer the same on its sets too).
-POLISH_LATER_GAIN = 0.14
 # An object's top is the 98th percentile of its points along up: the highest 2 % are mixed pixels and noise.
 TOP_PERCENTILE = 98
 
@@ -111,31 +87,7 @@ def compile_loops() -> None:
         module.warm()
 
 
-@dataclass(eq=False)
-class RefineRun:
-    """What the refinements of one frame's contenders share (`Localizer._refine`).
-
-    contenders : the candidates refined first, the best first. near : in one room, the contender `_near_contender`
-    added (then every score is weighed by depth agreement), else None. source : the frame points the refinement
-    draws on (`_refine_source`); roi_points : those within γ of the frame's centre, within the point budget;
-    roi_frame_points : how many lay within γ before the budget. center_camera : the centre of the ROI, camera
-    frame. renders : a building's refined poses' renders. whole : the whole frame within the budget, made when a
-    refinement slid (`_unslid`)."""
-
-    scan: Scan
-    method: str
-    diag: Diagnostics
-    contenders: list[Candidate]
-    near: Candidate | None
-    source: FramePoints
-    roi_points: FramePoints
-    roi_frame_points: int
-    center_camera: np.ndarray
-    renders: Renders
-    whole: FramePoints | None = None
-
-
-class Localizer(BuildingViews):
+class Localizer(RefineStage, BuildingViews, FallbackStage):
     """Localize frames in one site. Build with `from_site`; `localize` is read-only and may be called repeatedly.
 
     up : (3,) unit vector opposite to gravity, map frame. floor_height_m : the floor's height along `up`, metres.
@@ -143,7 +95,8 @@ class Localizer(BuildingViews):
     maps : the site's regions and, per region, the map the refinement and the agreement scores use
     (`RefineConfig.map_points`) and the free-space check (`regions.py`): a pose uses those of the region it looks
     into. node_region : (k,) int, the region (index into `maps.regions`) of each graph node. The refine stage's
-    steps that only a building takes are its base class's (`building_views.BuildingViews`).
+    steps are in its base classes `refine_stage.RefineStage` and, those only a building takes,
+    `building_views.BuildingViews`; the verify stage's fallbacks in `fallback_stage.FallbackStage`.
     """
 
     def __init__(self, site: Site, config: LocalizeConfig, *, up: np.ndarray, floor_height_m: float, graph: MapGraph,
@@ -478,13 +431,13 @@ class Localizer(BuildingViews):
         with timer("verify"):
             # At most COARSE_POINTS frame points (a coarser grid for a frame that spans a large room): each
             # candidate's coarse GICP costs a KD-tree query of each per iteration.
-            coarse = _voxel_budget(scan.down, self.config.refine.coarse_voxel_m, COARSE_POINTS)
+            coarse = voxel_budget(scan.down, self.config.refine.coarse_voxel_m, COARSE_POINTS)
             source = small_gicp.preprocess_points(coarse.xyz, self.config.refine.coarse_voxel_m,
                                                   num_neighbors=GICP_NEIGHBORS)[0]
             candidates = self._align(hyp, source, scan)
             if prior is not None:
                 # A client's pose prior is one more hypothesis, checked like the others (never trusted blindly).
-                candidates += self._align(_single(prior), source, scan, origin="prior")
+                candidates += self._align(Hypotheses.of_pose(prior), source, scan, origin="prior")
         best = max((c.score for c in candidates), default=0.0)
         # Below this the graph's best is weak: its coarse fitness, or in a building its view agreement, held higher
         # when the best rests on one object (a 4-room building's view of a wall and part of a whiteboard was
@@ -545,257 +498,6 @@ class Localizer(BuildingViews):
         diag.notes.append(f"fallbacks not run: the best coarse pose (score {best.score:.2f}) agrees with the map's "
                           f"depth in {100 * agreement:.0f} % of the view")
         return True
-
-    def _refine(self, scan: Scan, candidates: list[Candidate], method: str, diag: Diagnostics) -> Choice:
-        """Candidates -> Choice: fine refinement of the best inside the region of interest, and of its distinct
-        rivals within the ambiguity margin (up to MatchConfig.refine_contenders), re-ranked after refinement."""
-        run = self._refine_run(scan, candidates, method, diag)
-        refine = partial(self._refine_contender, run)
-        refined = [refine(c) for c in run.contenders]
-        taken_next = self._refine_past_see_through(run, refined, candidates, refine)
-        if scan.view is not None:
-            has_rival, margin, rivals = self._rank_building(run, refined, candidates, refine)
-        else:
-            rivals = None
-            has_rival, margin = self._rank_room(refined, candidates, diag)
-        if scan.unverified:
-            diag.notes.append(f"{len(scan.unverified)} more regions tied with the best and were not verified")
-            has_rival, margin = True, 0.0
-        return self._choice(run, refined, taken_next, has_rival, margin, rivals)
-
-    def _refine_run(self, scan: Scan, candidates: list[Candidate], method: str, diag: Diagnostics) -> RefineRun:
-        """What the contenders' refinements share: the contenders (in one room the best, its distinct rivals within
-        the ambiguity margin and the near contender; in a building `_view_contenders`) and the frame points of the
-        region of interest."""
-        mc, rc = self.config.match, self.config.refine
-        best = candidates[0]
-        if scan.view is None:
-            contenders = [best] + [c for c in candidates[1:mc.refine_contenders] if best.score - c.score < mc.ambiguity_margin
-                                   and self._distinct(c.T_map_camera, best.T_map_camera)]
-            near = self._near_contender(candidates, contenders)
-            if near is not None:
-                contenders.append(near)
-        else:
-            near = None
-            contenders = self._view_contenders(candidates, scan.center_camera)
-        # Region of interest (paper §2.5, radius γ about the frame's centre under the hypothesis). The map's search
-        # structures are built once per site rather than cropped per frame; leaving out the frame points farther
-        # than γ from their centroid has the same effect, since correspondences are sought only a few centimetres
-        # from each frame point.
-        source = self._refine_source(scan, method)
-        roi_points, center_camera = crop_to_roi(source, rc.roi_radius_m, scan.center_camera)
-        # The cost of a refinement is bounded by its inputs: at most MatchConfig.refine_points frame points
-        # (`_budget`), for at most refine_contenders hypotheses, each at most twice (the slide check in
-        # `_refine_contender`).
-        return RefineRun(scan, method, diag, contenders, near, source, self._budget(roi_points, method), len(roi_points),
-                         center_camera, Renders())
-
-    def _refine_contender(self, run: RefineRun, c: Candidate) -> Refined:
-        """One contender refined and scored: in a building by its view agreement along the frame's rays, in one
-        room by its agreement score, both lowered by how far the frame sees through the map there."""
-        scan, mc = run.scan, self.config.match
-        maps = self.maps_at(c.T_map_camera, run.center_camera)
-        if c is not run.contenders[0] and scan.zbuf is not None:
-            see = maps.view_check.see_through(c.T_map_camera, scan.zbuf, scan.K)
-            if see > HOPELESS_SEE_THROUGH * mc.max_see_through:
-                # A rival the frame sees through this far at its coarse pose never refined into a credible
-                # one: it keeps that pose and a score of 0, as its refinement would have earned.
-                return Refined(0.0, RefineOutcome(c.T_map_camera, None, 0, False, run.method), c, see)
-        out = self._refine_one(maps.refine_map, run.roi_points, c.T_map_camera, run.method)
-        if run.roi_frame_points < len(run.source):
-            out = self._unslid(run, maps.refine_map, c, out)
-        see = 0.0 if scan.zbuf is None else self.maps_at(out.T_map_camera, run.center_camera).view_check.see_through(
-            out.T_map_camera, scan.zbuf, scan.K)
-        if scan.view is not None:
-            # Along the frame's rays the map in front of the measured depth already counts against the pose.
-            return Refined(float(scan.view.agreement(self._render_of(scan, run.renders, out))[0]), out, c, see)
-        # A pose at which the frame sees through the map ranks below one at which it does not, whatever its
-        # fit: the same factor as in the confidence.
-        score = self._agreement_score(out.T_map_camera, scan) * max(0.0, 1.0 - see / mc.max_see_through)
-        if run.near is not None and scan.zbuf is not None:
-            # Two basins of one hypothesis are told apart as the sensor sees them: the labels that ranked them
-            # are what put them side by side (`_near_contender`).
-            score *= maps.view_check.depth_agreement(out.T_map_camera, scan.zbuf, scan.K)
-        return Refined(score, out, c, see)
-
-    def _unslid(self, run: RefineRun, refine_map: RefineMap, c: Candidate, out: RefineOutcome) -> RefineOutcome:
-        """The ROI leaves out the frame's far points; when those were what held the pose along some direction (a
-        corner whose far wall lies beyond γ), the refinement slides and the whole frame fits worse than at its
-        start. Then the whole frame (within the same point budget) refines it, and the better fit is kept."""
-        rc = self.config.refine
-        fit = lambda T: refine_map.fitness(transform_points(T, run.scan.check_xyz), inlier_m=rc.inlier_m)[0]  # noqa: E731
-        if fit(out.T_map_camera) >= fit(c.T_map_camera) - SLIDE_TOLERANCE:
-            return out
-        if run.whole is None:
-            run.whole = self._budget(run.source, run.method)
-        again = self._refine_one(refine_map, run.whole, c.T_map_camera, run.method)
-        if fit(again.T_map_camera) > fit(out.T_map_camera):
-            run.diag.notes.append("the ROI refinement slid: refined with the whole frame")
-            return again
-        return out
-
-    def _refine_past_see_through(self, run: RefineRun, refined: list[Refined], candidates: list[Candidate],
-                                 refine: Callable[[Candidate], Refined]) -> Candidate | None:
-        """When every contender puts the map in front of what the frame measured, the next distinct candidates (at
-        most EXTRA_CONTENDERS more) are refined into `refined` until one does not. Returns the candidate so taken,
-        else None."""
-        if not all(r.see_through > self.config.match.max_see_through for r in refined):
-            return None
-        tried = [r.T_map_camera for r in refined]
-        limit = len(refined) + EXTRA_CONTENDERS
-        for c in candidates[1:]:
-            if len(refined) >= limit:
-                break
-            if any(c is k for k in run.contenders) or not all(self._distinct(c.T_map_camera, T) for T in tried):
-                continue
-            refined.append(refine(c))
-            tried.append(refined[-1].T_map_camera)
-            if refined[-1].see_through <= self.config.match.max_see_through:
-                run.diag.notes.append(f"the best {len(refined) - 1} poses saw through the map: took the next")
-                return c
-        return None
-
-    def _rank_building(self, run: RefineRun, refined: list[Refined], candidates: list[Candidate],
-                       refine: Callable[[Candidate], Refined]) -> tuple[bool, float, list[Candidate]]:
-        """In a building: the refined contenders ranked by view agreement, the copies of the best's view looked at
-        (and promoted when they show the frame better), the rivals that look the same along the frame's rays found
-        and, when there are some, ordered by the frame's objects and fit (`building_views.py`). Returns (has a
-        distinct rival, margin, rivals)."""
-        scan, diag, renders, center_camera = run.scan, run.diag, run.renders, run.center_camera
-        mc = self.config.match
-        refined.sort(key=lambda r: -r.score)
-        self._report_refined(refined, candidates)
-        twins = self._twin_views(scan, refined[0].T_map_camera, center_camera, candidates, renders, len(refined),
-                                 refined[0].score)
-        for r in refined[1:]:
-            # A contender the answer cannot be told from: the copies of its view are looked at too. The truth's
-            # room may be a copy of the runner-up's room-relative view, not of the answer's (a room lacking
-            # a chair the frame sees shows the right view a little worse than another room a wrong one).
-            if refined[0].score - r.score >= mc.ambiguity_margin or not self._distinct(r.T_map_camera,
-                                                                                     refined[0].T_map_camera):
-                continue
-            more = self._twin_views(scan, r.T_map_camera, center_camera, candidates, renders, len(refined),
-                                    refined[0].score)
-            twins += [t for t in more if all(self._distinct(t.T_map_camera, u.T_map_camera) for u in twins)]
-        twins = self._promote_twins(scan, refined, twins, refine, candidates, renders, center_camera)
-        candidates.extend(t.candidate for t in twins)
-        has_rival, margin, rivals = self._view_rivals(refined + twins, renders, candidates, scan)
-        diag.notes.append(f"refined {len(refined)} of the best poses, view agreement "
-                          + ", ".join(f"{r.score:.3f}" for r in refined)
-                          + (f"; {len(rivals)} distinct poses look the same along the frame's rays" if rivals else ""))
-        if rivals and scan.clusters:
-            before = refined[0].candidate
-            told = self._told_by_objects(scan, refined, rivals, refine, candidates, diag)
-            if told and refined[0].candidate is not before:
-                # The objects put a rival first: the copies of its view were never looked at (the twin check
-                # ran from the pose it replaced). A copy that shows the frame as well stands as its rival.
-                # (A 100-room view repeated in four rooms was answered `ok` in one of them this way.)
-                twins = self._promoted_twins(scan, refined, center_camera, candidates, renders)
-                if twins:
-                    told = False
-                    rivals = rivals + twins
-                    diag.notes.append(f"{len(twins)} copies of the objects' pose show the frame as well")
-            if told:
-                # The frame's objects rule the other poses out: no rival stands, whatever the view margin.
-                has_rival, margin, rivals = False, mc.confident_margin, []
-        if rivals:
-            self._closest_fit_first(scan, refined, rivals, refine, candidates, diag)
-        return has_rival, margin, rivals
-
-    def _rank_room(self, refined: list[Refined], candidates: list[Candidate], diag: Diagnostics) -> tuple[bool, float]:
-        """In one room: the refined contenders ranked by score; (has a distinct rival, margin), with a rival standing
-        whenever a distinct candidate as close as the contenders was left unrefined."""
-        mc = self.config.match
-        best = candidates[0]
-        if len(refined) > 1:
-            refined.sort(key=lambda r: -r.score)
-            diag.notes.append(f"refined {len(refined)} close hypotheses, scores " + ", ".join(f"{r.score:.3f}" for r in refined))
-            has_rival, margin = self._rival_margin([r.score for r in refined], [r.T_map_camera for r in refined])
-        else:
-            has_rival, margin = self._rival_margin([c.score for c in candidates], [c.T_map_camera for c in candidates])
-        # A distinct candidate as close to the best as the contenders, but beyond the refine_contenders refined,
-        # was never ruled out: the answer cannot claim to be the one.
-        unexamined = [c for c in candidates[1:] if best.score - c.score < mc.ambiguity_margin
-                      and not any(c is r.candidate for r in refined)
-                      and all(self._distinct(c.T_map_camera, r.T_map_camera) for r in refined)]
-        if unexamined:
-            diag.notes.append(f"{len(unexamined)} more distinct hypotheses as close as the refined ones were not refined")
-            has_rival, margin = True, 0.0
-        return has_rival, margin
-
-    def _choice(self, run: RefineRun, refined: list[Refined], taken_next: Candidate | None, has_rival: bool,
-                margin: float, rivals: list[Candidate] | None) -> Choice:
-        """The winner, refined[0], with its fit to the map and its agreement with the frame's depth."""
-        scan, rc, center_camera = run.scan, self.config.refine, run.center_camera
-        out, winner, see = refined[0].outcome, refined[0].candidate, refined[0].see_through
-        fitness, rmse = self.maps_at(out.T_map_camera, center_camera).refine_map.fitness(
-            transform_points(out.T_map_camera, scan.check_xyz), inlier_m=rc.inlier_m)
-        if scan.view is not None:
-            # In a building, along the frame's rays through the whole map: a region's map holds its neighbours
-            # only 3 m out, and a view over the low walls of a composed building reaches farther.
-            agreement, coverage = scan.view.shared(self._render_of(scan, run.renders, out))
-        elif scan.zbuf is None:
-            agreement, coverage = 1.0, 1.0
-        else:
-            agreement, coverage = self.maps_at(out.T_map_camera, center_camera).view_check.compare_depth(
-                out.T_map_camera, scan.zbuf, scan.K, scan.check_xyz)
-        passed_over = winner is taken_next
-        return Choice(winner, out, margin, has_rival, fitness, rmse, center_camera, run.roi_frame_points, see, agreement,
-                      coverage, rivals, passed_over)
-
-    def _near_contender(self, candidates: list[Candidate], contenders: list[Candidate]) -> Candidate | None:
-        """In one room: the best candidate within RegionConfig.contender_margin of the best's score that lies beyond
-        the refinement's reach of every contender (NEAR_REACH_M, NEAR_REACH_DEG) though not distinct from the best
-        (MatchConfig.distinct_translation_m): to the graph one hypothesis, to the refinement another basin, and it
-        is refined too, so that the geometry picks between them. A segmenter's labels shift a door's or a
-        whiteboard's centroid along its wall: a scene0470 view of a door, its whiteboard left unlabelled, ranked a
-        pose 26 cm along the wall 0.04 above the right one (depth agreement 0.82 against 0.98), which was never
-        refined, and was answered `ok`, confidence 0.93."""
-        best, margin = candidates[0], self.config.regions.contender_margin
-        starts = np.array([k.T_map_camera for k in contenders])
-        for c in candidates[1:]:
-            if best.score - c.score >= margin:
-                break  # (sorted best first)
-            if any(c is k for k in contenders) or self._distinct(c.T_map_camera, best.T_map_camera):
-                continue
-            beyond = distinct_pairs(c.T_map_camera[None], starts, min_translation_m=NEAR_REACH_M,
-                                    min_rotation_deg=NEAR_REACH_DEG)
-            if beyond.all():
-                return c
-        return None
-
-    def _rival_margin(self, scores: list[float], poses: list[np.ndarray]) -> tuple[bool, float]:
-        """(has a distinct rival, margin) of poses sorted best first (refined contenders, or the candidates when
-        only the best was refined): the rival is the best pose distinct from the winner, wherever it ranks. A
-        runner-up that converged onto the winner is the winner again, not a rival, and must not hide a distinct
-        pose behind it (two twin rooms refined to 0.962 and 0.947 with a copy of the first between them were
-        answered `ok` with the whole score as margin)."""
-        for score, T in zip(scores[1:], poses[1:]):
-            if self._distinct(T, poses[0]):
-                return True, scores[0] - score
-        return False, scores[0]
-
-    def _refine_source(self, scan: Scan, method: str) -> FramePoints:
-        """The frame points the refinement draws on: the scan's voxel grid (FrameConfig.voxel_size_m) when it is no
-        coarser than small_gicp's own (RefineConfig.source_voxel_m), else every point. Its point budget then grids
-        a ninth of the points: on 7-Scenes frames gridding all of them took 18 ms of a 100 ms frame."""
-        if method == "small_gicp" and self.config.frame.voxel_size_m <= self.config.refine.source_voxel_m:
-            return scan.down
-        return scan.points
-
-    def _budget(self, points: FramePoints, method: str) -> FramePoints:
-        """The refinement's input: at its own resolution or, when that leaves more than MatchConfig.refine_points,
-        at a coarser one that does not (a voxel grid, not a random sample: thin structure such as a door frame
-        keeps its points). The others sample their own scales (down to 2 cm) and get the points as they are."""
-        if method != "small_gicp":
-            return points
-        return _voxel_budget(points, self.config.refine.source_voxel_m, self.config.match.refine_points)
-
-    def _refine_one(self, refine_map: RefineMap, points: FramePoints, T_start: np.ndarray, method: str):
-        rc = self.config.refine
-        return refine_map.refine(points, T_start, method=method, epsilon=rc.epsilon, source_voxel_m=rc.source_voxel_m,
-                                 max_correspondence_m=rc.max_correspondence_m, max_iterations=rc.max_iterations,
-                                 grid_max_iterations=rc.grid_max_iterations, wide_voxel_m=rc.wide_voxel_m)
 
     def _result(self, scan: Scan, candidates: list[Candidate], choice: Choice, top_k: int, diag: Diagnostics,
                 frame_id: str | None) -> LocalizationResult:
@@ -948,154 +650,6 @@ class Localizer(BuildingViews):
         return LocalizationResult(Status.NO_MATCH if seen else Status.NO_OBJECTS, diagnostics=diag, frame_id=frame_id)
 
     # --- helpers ------------------------------------------------------------------------------------------------
-    def _candidate_regions(self, candidates: list[Candidate]) -> list[Region]:
-        """In a building, the regions of the graph's candidates (at most RegionConfig.max_verified, best first):
-        where the label-free search looks when the graph found something but nothing strong (a search over the
-        whole building costs as many rooms as it has). [] for a one-room site or when the graph found nothing."""
-        if len(self.maps) == 1:
-            return []
-        rooms: list[Region] = []
-        for c in sorted(candidates, key=lambda c: -c.score):
-            region = self.maps.region_at(c.T_map_camera[:3, 3])
-            if region not in rooms:
-                rooms.append(region)
-        return rooms[: self.config.regions.max_verified]
-
-    def _fallback(self, name: str, scan: Scan, notes: list[str], rooms: list[Region]) -> Hypotheses | None:
-        """Hypotheses of one fallback method, or None when it cannot run (the label-free search needs up) or
-        found nothing the frame's up direction allows."""
-        fb, floor = self.config.fallback, scan.floor
-        if name == "bbs":
-            return self._label_free(scan, notes, rooms)
-        registrar = self._fpfh_in_reach(scan, rooms, notes)
-        if registrar is None:
-            return None
-        T, _ = registrar.register(scan.down.xyz)
-        if floor is not None:
-            # FPFH + RANSAC knows nothing of gravity: on a bare wall it happily returns the camera upside down.
-            tilt = np.degrees(np.arccos(np.clip((T[:3, :3] @ floor.up_camera) @ self.up, -1.0, 1.0)))
-            if tilt > fb.max_up_disagreement_deg:
-                notes.append(f"fallback fpfh-ransac refused: its pose tilts up by {tilt:.0f}° from the {floor.source}'s")
-                return None
-        hyp = _single(T)
-        hyp.geometric = score_poses(self.field, scan.score_xyz, hyp.R, hyp.t, tau_m=self.config.match.score_tau_m)
-        return hyp
-
-    def _fpfh_in_reach(self, scan: Scan, rooms: list[Region], notes: list[str]) -> FpfhRansac | None:
-        """The FPFH + RANSAC registrar this frame may use: the whole map's in a one-room site; in a building the one
-        of a single room (its region map, features computed on first use and kept with it): the room the client's
-        search region names or centres on, else the graph's best candidate room. None, with a note, when neither
-        exists: the whole building's features would cost seconds a room and a copy of the building per worker, for
-        a pose a building could not trust anyway (any other room may repeat the view)."""
-        if len(self.maps) == 1:
-            return self.fpfh()
-        room = None
-        if scan.search is not None:
-            named = scan.search.resolve(self.maps.regions)
-            room = named[0] if len(named) == 1 else (self.maps.region_at(scan.search.center) if not named else None)
-        elif rooms:
-            room = rooms[0]
-        if room is None:
-            notes.append("fallback fpfh-ransac skipped: in a building it searches one room (name one in search_region)")
-            return None
-        index = self.maps.index(room)
-        if index.fpfh is None:
-            # The room's own box, not its refinement map: that holds a halo of the neighbours' points (3 m), and
-            # their features and RANSAC over them took 18 s for one frame of a 100-room site.
-            xyz = index.refine_map.xyz
-            lo, hi = room.bounds[0] - ROOM_MARGIN_M, room.bounds[1] + ROOM_MARGIN_M
-            index.fpfh = FpfhRansac(xyz[np.all((xyz >= lo) & (xyz <= hi), axis=1)],
-                                    voxel_m=self.config.fallback.voxel_size_m)
-        return index.fpfh
-
-    def _label_free(self, scan: Scan, notes: list[str], rooms: list[Region]) -> Hypotheses | None:
-        """The label-free search (bbs.py): level the frame by its up, pick the yaws its walls allow, branch and
-        bound over (x, y, z, yaw) — over the client's search region, else over `rooms` (a building's candidate
-        regions), else over the whole site; the distinct best leaves as hypotheses. None without an up direction."""
-        lf, floor = self.config.label_free, scan.floor
-        if not lf.enabled or floor is None:
-            return None
-        pyr, map_hist = self.pyramid()
-        R_up = rotation_between(floor.up_camera, np.array([0.0, 0.0, 1.0]))
-        rng = np.random.default_rng(1)
-        pick = rng.choice(len(scan.down), min(lf.points, len(scan.down)), replace=False)
-        normals = floor.normals if floor.normals is not None else planar_normals(scan.down.xyz, max_points=YAW_NORMAL_POINTS)[1]
-        yaws = yaw_candidates(normals @ R_up.T, map_hist, step_deg=lf.yaw_step_deg)
-        labelled_floor = floor.source == "floor" and floor.height_m is not None
-        points_level = scan.down.xyz[pick] @ R_up.T
-        rc = self.config.regions
-        found = []
-        for box, floor_m, covered in self._search_boxes(scan, pyr.R_level_map, rooms):
-            # The budget grows with the rooms the box covers: their coarse levels tie (`bbs.highest`). A box of one
-            # room (a candidate's, a region the client names) keeps a room's: at the building's minimum, the
-            # graph's weak candidates' rooms searched one by one cost ten times the whole building (a 100-room
-            # frame's 48 rooms: 3.3 M nodes, 430 ms); at a room's, every answer of the labelled building sets
-            # (10, 16, 100 rooms, mixed; clean and with harsh label noise) stayed, means 3-11 % lower.
-            max_nodes = lf.max_nodes if len(self.maps) == 1 or covered == 1 else max(
-                rc.search_max_nodes, rc.search_nodes_per_region * covered)
-            z_range = None
-            if labelled_floor and floor_m is not None:
-                # A labelled floor gives the camera's height: only a band about it is searched.
-                z_level = floor_m + floor.height_m  # heights along up are the level frame's z
-                z_range = (z_level - 2 * lf.voxel_m, z_level + 2 * lf.voxel_m)
-            found.append(pyr.search(points_level, yaws, z_range_level=z_range, box_level=box,
-                                    keep_ratio=lf.keep_ratio, max_nodes=max_nodes))
-        poses = np.concatenate([f[0] for f in found])
-        scores = np.concatenate([f[1] for f in found])
-        order = np.argsort(-scores, kind="stable")
-        poses, scores = poses[order], scores[order]
-        stats = found[0][2]
-        for f in found[1:]:
-            stats.nodes += f[2].nodes
-            stats.capped |= f[2].capped
-            stats.best = max(stats.best, f[2].best)
-        mc = self.config.match
-        # In a building the same view may fit in many rooms: more distinct leaves are kept (a room's own leaves
-        # would otherwise crowd its twins out), then ranked by room.
-        count = lf.candidates if len(self.maps) == 1 else lf.candidates * (1 + self.config.regions.max_verified)
-        hyp = pyr.hypotheses(poses, scores, R_up, count=count, min_translation_m=mc.distinct_translation_m,
-                             min_rotation_deg=mc.distinct_rotation_deg)
-        hyp = polish(self.field, scan.score_xyz, hyp, self.up, step_m=lf.voxel_m / 2, step_deg=lf.yaw_step_deg / 2,
-                     later_within=self.config.regions.tie_margin + POLISH_LATER_GAIN)
-        if len(self.maps) > 1 and len(hyp):
-            keep, unverified = self._region_candidates(hyp, hyp.geometric, self.maps.indices_at(hyp.t),
-                                                       count=lf.candidates)
-            scan.unverified += [self._unverified_hypothesis(hyp, i, "fallback:bbs:unverified") for i in unverified]
-            hyp = hyp.take(np.array(keep, dtype=np.int64))
-        notes.append(f"label-free search: {len(yaws)} yaws, {stats.nodes} nodes, best leaf {stats.best:.2f}"
-                     + (" (node cap reached)" if stats.capped else ""))
-        return hyp if len(hyp) else None
-
-    def _search_boxes(self, scan: Scan, R_level_map: np.ndarray,
-                      rooms: list[Region]) -> list[tuple[np.ndarray | None, float | None, int]]:
-        """(box, floor, regions) of each part of the site the label-free search covers: the box (level frame,
-        (2, 3) corners) of camera positions, or None for the whole site; the floor height along up under it, None
-        where the regions under it do not share one; and how many regions' boxes it meets. One per region the client
-        named, or the client's ball; without a search region one per room of `rooms`, or the whole site when there
-        are none."""
-        if scan.search is None and not rooms:
-            return [(None, self._shared_floor(self.maps.regions), len(self.maps))]
-        if scan.search is None or scan.search.region_ids:
-            chosen = rooms if scan.search is None else scan.search.resolve(self.maps.regions)
-            boxes = [(np.stack([r.bounds[0] - CAMERA_MARGIN_M, r.bounds[1] + CAMERA_MARGIN_M]), self._shared_floor([r]), 1)
-                     for r in chosen]
-        else:
-            lo, hi = scan.search.center - scan.search.radius_m, scan.search.center + scan.search.radius_m
-            met = sum(bool(np.all(r.bounds[0][:2] <= hi[:2]) and np.all(lo[:2] <= r.bounds[1][:2]))
-                      for r in self.maps.regions)
-            boxes = [(np.stack([lo, hi]), self._shared_floor(self.maps.regions), max(met, 1))]
-        out = []
-        for (lo, hi), floor_m, covered in boxes:
-            corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-            level = corners @ R_level_map.T
-            out.append((np.stack([level.min(axis=0), level.max(axis=0)]), floor_m, covered))
-        return out
-
-    def _shared_floor(self, regions: list[Region]) -> float | None:
-        """The floor height along up those regions share (within the label-free search's voxel), else None."""
-        floors = np.array([self.region_floor_m[r.id] for r in regions])
-        return float(np.median(floors)) if np.ptp(floors) <= self.config.label_free.voxel_m else None
-
     def _align(self, hyp: Hypotheses, source: small_gicp.PointCloud, scan: Scan, *,
                origin: str = "graph") -> list[Candidate]:
         """Hypotheses -> candidates: in a one-room site a coarse GICP from each and its agreement score; in a
@@ -1189,22 +743,3 @@ def _surface_sample(site: Site, maps: RegionMaps) -> PointSet:
         return site.cloud("both")
     largest = max(maps.regions, key=lambda r: r.points)
     return region_cloud(site, largest, "both")
-
-
-def _voxel_budget(points: FramePoints, voxel_m: float, budget: int) -> FramePoints:
-    """`points` on a voxel grid of voxel_m or, when that leaves more than `budget`, of the coarser voxel that does
-    not (a grid, not a random sample: thin structure such as a door frame keeps its points). A frame's points lie
-    on surfaces, so their count falls about with the voxel's square: one guess, then growth by VOXEL_GROWTH."""
-    sparse = voxel_downsample(points, voxel_m)
-    if len(sparse) > budget:
-        voxel_m *= np.sqrt(len(sparse) / budget)
-        sparse = voxel_downsample(points, voxel_m)
-        while len(sparse) > budget:
-            voxel_m *= VOXEL_GROWTH
-            sparse = voxel_downsample(points, voxel_m)
-    return sparse
-
-
-def _single(T_map_camera: np.ndarray) -> Hypotheses:
-    """One hypothesis from a pose that no graph seed produced (a prior, an FPFH + RANSAC pose)."""
-    return Hypotheses(T_map_camera[None, :3, :3].copy(), T_map_camera[None, :3, 3].copy(), np.array([[-1, -1]]))

@@ -141,6 +141,11 @@ class Hypotheses:
         return cls(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 2), dtype=np.int64))
 
     @classmethod
+    def of_pose(cls, T_map_camera: np.ndarray) -> "Hypotheses":
+        """One hypothesis from a pose that no graph seed produced (a prior, an FPFH + RANSAC pose)."""
+        return cls(T_map_camera[None, :3, :3].copy(), T_map_camera[None, :3, 3].copy(), np.array([[-1, -1]]))
+
+    @classmethod
     def concat(cls, parts: list["Hypotheses"]) -> "Hypotheses":
         parts = [p for p in parts if len(p)]
         if not parts:

@@ -13,6 +13,9 @@ import numpy as np
 
 from ..frame import Frame
 
+# A point budget's voxel grows by this factor until the points fit (`voxel_budget`).
+VOXEL_GROWTH = 1.15
+
 
 @dataclass
 class FramePoints:
@@ -108,3 +111,17 @@ def voxel_indices(xyz: np.ndarray, voxel_size_m: float) -> np.ndarray:
 
 def voxel_downsample(points: FramePoints, voxel_size_m: float) -> FramePoints:
     return points.subset(voxel_indices(points.xyz, voxel_size_m))
+
+
+def voxel_budget(points: FramePoints, voxel_m: float, budget: int) -> FramePoints:
+    """`points` on a voxel grid of voxel_m or, when that leaves more than `budget`, of the coarser voxel that does
+    not (a grid, not a random sample: thin structure such as a door frame keeps its points). A frame's points lie
+    on surfaces, so their count falls about with the voxel's square: one guess, then growth by VOXEL_GROWTH."""
+    sparse = voxel_downsample(points, voxel_m)
+    if len(sparse) > budget:
+        voxel_m *= np.sqrt(len(sparse) / budget)
+        sparse = voxel_downsample(points, voxel_m)
+        while len(sparse) > budget:
+            voxel_m *= VOXEL_GROWTH
+            sparse = voxel_downsample(points, voxel_m)
+    return sparse

@@ -1,0 +1,185 @@
+"""The fallbacks of the verify stage: what finds hypotheses when the graph's best is weak (no labels, no objects,
+no match). The label-free search first (branch-and-bound over x, y, z and yaw on the site's grid pyramid,
+`bbs.py`), over the client's search region, else the rooms of the graph's weak candidates, else the whole site;
+FPFH + RANSAC (`fallback.py`) only where the frame gives no up direction, and in a building against one room.
+
+`FallbackStage` is a part of `Localizer` (one of its base classes), kept in a module of its own: its methods read
+the localizer's `config`, `field`, `maps` (`RegionMaps`), `up`, `region_floor_m`, `pyramid()` and `fpfh()`, and
+the hypotheses stage's `_region_candidates` and `_unverified_hypothesis`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..geometry import rotation_between
+from ..site.regions import CAMERA_MARGIN_M, Region
+from .bbs import polish, yaw_candidates
+from .fallback import FpfhRansac
+from .gravity import planar_normals
+from .match import Hypotheses
+from .score import score_poses
+from .stages import Candidate, Scan
+
+# A building's FPFH + RANSAC registers against one room's box grown by this (walls scanned a little outside it).
+ROOM_MARGIN_M = 0.3
+# Flat-surface normals sampled for the yaw candidates of the label-free search when the up estimate gave none.
+YAW_NORMAL_POINTS = 1000
+# The label-free search's leaves are polished (`bbs.polish`) twice, the second round only for those its first left
+# within RegionConfig.tie_margin and this of the best: the second round's half steps raised a leaf's score by at
+# most 0.12 (the 100-room frames without labels: 245 leaves a frame, 52 within 0.16 after the first round), and
+# only leaves that end within the tie margin are ranked by room. 100 rooms without labels: median -3 %, p90 -8 %,
+# every answer the same. One room takes the same cut (its five leaves; every answer the same on its sets too).
+POLISH_LATER_GAIN = 0.14
+
+
+class FallbackStage:
+    """The verify stage's fallbacks (a base class of `Localizer`; see the module's text)."""
+
+    def _candidate_regions(self, candidates: list[Candidate]) -> list[Region]:
+        """In a building, the regions of the graph's candidates (at most RegionConfig.max_verified, best first):
+        where the label-free search looks when the graph found something but nothing strong (a search over the
+        whole building costs as many rooms as it has). [] for a one-room site or when the graph found nothing."""
+        if len(self.maps) == 1:
+            return []
+        rooms: list[Region] = []
+        for c in sorted(candidates, key=lambda c: -c.score):
+            region = self.maps.region_at(c.T_map_camera[:3, 3])
+            if region not in rooms:
+                rooms.append(region)
+        return rooms[: self.config.regions.max_verified]
+
+    def _fallback(self, name: str, scan: Scan, notes: list[str], rooms: list[Region]) -> Hypotheses | None:
+        """Hypotheses of one fallback method, or None when it cannot run (the label-free search needs up) or
+        found nothing the frame's up direction allows."""
+        fb, floor = self.config.fallback, scan.floor
+        if name == "bbs":
+            return self._label_free(scan, notes, rooms)
+        registrar = self._fpfh_in_reach(scan, rooms, notes)
+        if registrar is None:
+            return None
+        T, _ = registrar.register(scan.down.xyz)
+        if floor is not None:
+            # FPFH + RANSAC knows nothing of gravity: on a bare wall it happily returns the camera upside down.
+            tilt = np.degrees(np.arccos(np.clip((T[:3, :3] @ floor.up_camera) @ self.up, -1.0, 1.0)))
+            if tilt > fb.max_up_disagreement_deg:
+                notes.append(f"fallback fpfh-ransac refused: its pose tilts up by {tilt:.0f}° from the {floor.source}'s")
+                return None
+        hyp = Hypotheses.of_pose(T)
+        hyp.geometric = score_poses(self.field, scan.score_xyz, hyp.R, hyp.t, tau_m=self.config.match.score_tau_m)
+        return hyp
+
+    def _fpfh_in_reach(self, scan: Scan, rooms: list[Region], notes: list[str]) -> FpfhRansac | None:
+        """The FPFH + RANSAC registrar this frame may use: the whole map's in a one-room site; in a building the one
+        of a single room (its region map, features computed on first use and kept with it): the room the client's
+        search region names or centres on, else the graph's best candidate room. None, with a note, when neither
+        exists: the whole building's features would cost seconds a room and a copy of the building per worker, for
+        a pose a building could not trust anyway (any other room may repeat the view)."""
+        if len(self.maps) == 1:
+            return self.fpfh()
+        room = None
+        if scan.search is not None:
+            named = scan.search.resolve(self.maps.regions)
+            room = named[0] if len(named) == 1 else (self.maps.region_at(scan.search.center) if not named else None)
+        elif rooms:
+            room = rooms[0]
+        if room is None:
+            notes.append("fallback fpfh-ransac skipped: in a building it searches one room (name one in search_region)")
+            return None
+        index = self.maps.index(room)
+        if index.fpfh is None:
+            # The room's own box, not its refinement map: that holds a halo of the neighbours' points (3 m), and
+            # their features and RANSAC over them took 18 s for one frame of a 100-room site.
+            xyz = index.refine_map.xyz
+            lo, hi = room.bounds[0] - ROOM_MARGIN_M, room.bounds[1] + ROOM_MARGIN_M
+            index.fpfh = FpfhRansac(xyz[np.all((xyz >= lo) & (xyz <= hi), axis=1)],
+                                    voxel_m=self.config.fallback.voxel_size_m)
+        return index.fpfh
+
+    def _label_free(self, scan: Scan, notes: list[str], rooms: list[Region]) -> Hypotheses | None:
+        """The label-free search (bbs.py): level the frame by its up, pick the yaws its walls allow, branch and
+        bound over (x, y, z, yaw) — over the client's search region, else over `rooms` (a building's candidate
+        regions), else over the whole site; the distinct best leaves as hypotheses. None without an up direction."""
+        lf, floor = self.config.label_free, scan.floor
+        if not lf.enabled or floor is None:
+            return None
+        pyr, map_hist = self.pyramid()
+        R_up = rotation_between(floor.up_camera, np.array([0.0, 0.0, 1.0]))
+        rng = np.random.default_rng(1)
+        pick = rng.choice(len(scan.down), min(lf.points, len(scan.down)), replace=False)
+        normals = floor.normals if floor.normals is not None else planar_normals(scan.down.xyz, max_points=YAW_NORMAL_POINTS)[1]
+        yaws = yaw_candidates(normals @ R_up.T, map_hist, step_deg=lf.yaw_step_deg)
+        labelled_floor = floor.source == "floor" and floor.height_m is not None
+        points_level = scan.down.xyz[pick] @ R_up.T
+        rc = self.config.regions
+        found = []
+        for box, floor_m, covered in self._search_boxes(scan, pyr.R_level_map, rooms):
+            # The budget grows with the rooms the box covers: their coarse levels tie (`bbs.highest`). A box of one
+            # room (a candidate's, a region the client names) keeps a room's: at the building's minimum, the
+            # graph's weak candidates' rooms searched one by one cost ten times the whole building (a 100-room
+            # frame's 48 rooms: 3.3 M nodes, 430 ms); at a room's, every answer of the labelled building sets
+            # (10, 16, 100 rooms, mixed; clean and with harsh label noise) stayed, means 3-11 % lower.
+            max_nodes = lf.max_nodes if len(self.maps) == 1 or covered == 1 else max(
+                rc.search_max_nodes, rc.search_nodes_per_region * covered)
+            z_range = None
+            if labelled_floor and floor_m is not None:
+                # A labelled floor gives the camera's height: only a band about it is searched.
+                z_level = floor_m + floor.height_m  # heights along up are the level frame's z
+                z_range = (z_level - 2 * lf.voxel_m, z_level + 2 * lf.voxel_m)
+            found.append(pyr.search(points_level, yaws, z_range_level=z_range, box_level=box,
+                                    keep_ratio=lf.keep_ratio, max_nodes=max_nodes))
+        poses = np.concatenate([f[0] for f in found])
+        scores = np.concatenate([f[1] for f in found])
+        order = np.argsort(-scores, kind="stable")
+        poses, scores = poses[order], scores[order]
+        stats = found[0][2]
+        for f in found[1:]:
+            stats.nodes += f[2].nodes
+            stats.capped |= f[2].capped
+            stats.best = max(stats.best, f[2].best)
+        mc = self.config.match
+        # In a building the same view may fit in many rooms: more distinct leaves are kept (a room's own leaves
+        # would otherwise crowd its twins out), then ranked by room.
+        count = lf.candidates if len(self.maps) == 1 else lf.candidates * (1 + self.config.regions.max_verified)
+        hyp = pyr.hypotheses(poses, scores, R_up, count=count, min_translation_m=mc.distinct_translation_m,
+                             min_rotation_deg=mc.distinct_rotation_deg)
+        hyp = polish(self.field, scan.score_xyz, hyp, self.up, step_m=lf.voxel_m / 2, step_deg=lf.yaw_step_deg / 2,
+                     later_within=self.config.regions.tie_margin + POLISH_LATER_GAIN)
+        if len(self.maps) > 1 and len(hyp):
+            keep, unverified = self._region_candidates(hyp, hyp.geometric, self.maps.indices_at(hyp.t),
+                                                       count=lf.candidates)
+            scan.unverified += [self._unverified_hypothesis(hyp, i, "fallback:bbs:unverified") for i in unverified]
+            hyp = hyp.take(np.array(keep, dtype=np.int64))
+        notes.append(f"label-free search: {len(yaws)} yaws, {stats.nodes} nodes, best leaf {stats.best:.2f}"
+                     + (" (node cap reached)" if stats.capped else ""))
+        return hyp if len(hyp) else None
+
+    def _search_boxes(self, scan: Scan, R_level_map: np.ndarray,
+                      rooms: list[Region]) -> list[tuple[np.ndarray | None, float | None, int]]:
+        """(box, floor, regions) of each part of the site the label-free search covers: the box (level frame,
+        (2, 3) corners) of camera positions, or None for the whole site; the floor height along up under it, None
+        where the regions under it do not share one; and how many regions' boxes it meets. One per region the client
+        named, or the client's ball; without a search region one per room of `rooms`, or the whole site when there
+        are none."""
+        if scan.search is None and not rooms:
+            return [(None, self._shared_floor(self.maps.regions), len(self.maps))]
+        if scan.search is None or scan.search.region_ids:
+            chosen = rooms if scan.search is None else scan.search.resolve(self.maps.regions)
+            boxes = [(np.stack([r.bounds[0] - CAMERA_MARGIN_M, r.bounds[1] + CAMERA_MARGIN_M]), self._shared_floor([r]), 1)
+                     for r in chosen]
+        else:
+            lo, hi = scan.search.center - scan.search.radius_m, scan.search.center + scan.search.radius_m
+            met = sum(bool(np.all(r.bounds[0][:2] <= hi[:2]) and np.all(lo[:2] <= r.bounds[1][:2]))
+                      for r in self.maps.regions)
+            boxes = [(np.stack([lo, hi]), self._shared_floor(self.maps.regions), max(met, 1))]
+        out = []
+        for (lo, hi), floor_m, covered in boxes:
+            corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+            level = corners @ R_level_map.T
+            out.append((np.stack([level.min(axis=0), level.max(axis=0)]), floor_m, covered))
+        return out
+
+    def _shared_floor(self, regions: list[Region]) -> float | None:
+        """The floor height along up those regions share (within the label-free search's voxel), else None."""
+        floors = np.array([self.region_floor_m[r.id] for r in regions])
+        return float(np.median(floors)) if np.ptp(floors) <= self.config.label_free.voxel_m else None
