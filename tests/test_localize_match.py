@@ -146,6 +146,34 @@ def test_sim_compares_edge_directions_under_the_hypothesis() -> None:
     assert hyp.s_e[0] > 0.99 and hyp.s_e[1] < hyp.s_e[0]
 
 
+def test_a_yaw_sweep_shares_its_rotations_and_scores_as_one_rotation_a_hypothesis() -> None:
+    """Single objects' hypotheses index a table of the sweep's rotations (`Hypotheses.rot`); with object pairs (one
+    rotation each) they concatenate into one table, `take` keeps the indices, and `R`, `T`, `rotation` and the
+    field's scores are what one (3, 3) a hypothesis gives."""
+    g = _graph()
+    T = _true_pose()
+    scan = transform_points(invert_T(T), g.centroid[[0, 3, 5]])
+    R_level = rotation_between(T[:3, :3].T @ [0, 0, 1.0], np.array([0, 0, 1.0]))
+    hyp = gravity_hypotheses(scan, g.cls[[0, 3, 5]], g, R_level=R_level, up=np.array([0, 0, 1.0]),
+                             camera_height_m=None, yaw_step_deg=10.0, scan_top=np.zeros(3))
+    assert hyp.rot is not None and len(hyp.R_table) < len(hyp)  # the sweeps' 36 rotations, shared
+    pick = np.unique(np.r_[np.random.default_rng(0).choice(len(hyp), 200, replace=False), len(hyp) - 1])
+    sub = hyp.take(pick)
+    assert sub.rot is not None and sub.R_table is hyp.R_table
+    assert all(np.array_equal(sub.T(k)[:3, :3], hyp.rotation(i)) for k, i in enumerate(pick))
+    rng_pts = np.random.default_rng(1)
+    field = DistanceField(rng_pts.uniform([0, 0, 0], [6, 5, 2], (3000, 3)), voxel_m=0.05)
+    pts = rng_pts.uniform(-1, 1, (40, 3))
+    by_table = score_poses(field, pts, sub.R_table, sub.t, rot=sub.rot)
+    R = sub.R  # made from the table on first read, then held
+    assert sub.rot is None and R.shape == (len(pick), 3, 3)
+    assert np.array_equal(R, hyp.R_table[hyp.rot[pick]])
+    assert np.array_equal(by_table, score_poses(field, pts, R, sub.t))
+    both = Hypotheses.concat([sub, Hypotheses.of_pose(T), hyp.take(pick[:5])])
+    assert both.rot is not None and len(both) == len(pick) + 6
+    assert np.array_equal(both.R[len(pick)], T[:3, :3]) and np.array_equal(both.R[-5:], hyp.R[pick[:5]])
+
+
 def test_distance_field_scores_the_true_pose_highest() -> None:
     rng = np.random.default_rng(3)
     # an L-shaped set of walls so that the pose is observable

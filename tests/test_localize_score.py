@@ -104,7 +104,8 @@ def test_a_stored_field_scores_poses_from_its_table_as_the_formula_does() -> Non
     t = rng.normal(0, 0.1, (50, 3))
     for tau in (0.05, 0.1, 0.15):
         by_formula = np.empty(len(R))
-        field_kernels.score_poses(*field.kernel_args(), pts, R, t, tau, field_kernels.NO_TABLE, by_formula)
+        field_kernels.score_poses(*field.kernel_args(), pts, R, np.arange(len(R)), t, tau, field_kernels.NO_TABLE,
+                                  by_formula)
         scores = score_poses(field, pts, R, t, tau_m=tau)
         assert np.array_equal(scores, by_formula)
         assert 0.0 < scores.min() and scores.max() <= 1.0

@@ -104,18 +104,19 @@ def _pose_cells(origin, voxel, hi, strides, points, r, s, cells):
 
 
 @njit(cache=True, nogil=True)
-def score_poses(grid, scale, origin, voxel, hi, strides, points, R, t, tau, table, out):
-    """out[h] = mean over the points of max(0, 1 - (d / tau)²), d the field's distance at R[h] · p + t[h].
-    points : (m, 3) camera frame; R : (h, 3, 3); t : (h, 3). table : for a quantized (uint8) grid, (256,) the score
+def score_poses(grid, scale, origin, voxel, hi, strides, points, R, rot, t, tau, table, out):
+    """out[h] = mean over the points of max(0, 1 - (d / tau)²), d the field's distance at R[rot[h]] · p + t[h].
+    points : (m, 3) camera frame; R : (u, 3, 3) rotations, rot : (h,) the one of each pose (`match.Hypotheses`
+    shares a table among a yaw sweep's poses); t : (h, 3). table : for a quantized (uint8) grid, (256,) the score
     of a cell holding each value (`quantized_scores`: the same sums, bit for bit, for a read of the table instead of
     a product, a division and a branch a point; a building's frame scores 50-250 k poses), else empty."""
     m = len(points)
     cells = np.empty(m, dtype=np.int64)
     by_table = len(table) > 0
-    for h in range(len(R)):
+    for h in range(len(t)):
         # The cells first, then the reads: independent reads of a large grid overlap in the memory system, reads
         # interleaved with the arithmetic of the next cell do not (one loop was slower than numpy's passes).
-        _pose_cells(origin, voxel, hi, strides, points, R[h], t[h], cells)
+        _pose_cells(origin, voxel, hi, strides, points, R[rot[h]], t[h], cells)
         total = 0.0
         for i in range(m):
             if by_table:  # (the cast: numba types this branch for a float grid too, which never takes it)
@@ -326,9 +327,10 @@ def warm() -> None:
         one = np.zeros(1)
         lookup(*args, one, one, one, np.empty(1, dtype=np.float32))
         R, t, p = np.eye(3)[None], np.zeros((1, 3)), np.zeros((1, 3))
-        score_poses(*args, p, R, t, 0.1, NO_TABLE, np.empty(1))
+        rot = np.zeros(1, dtype=np.int64)
+        score_poses(*args, p, R, rot, t, 0.1, NO_TABLE, np.empty(1))
         if grid.dtype == np.uint8:
-            score_poses(*args, p, R, t, 0.1, quantized_scores(1.0, 0.1), np.empty(1))
+            score_poses(*args, p, R, rot, t, 0.1, quantized_scores(1.0, 0.1), np.empty(1))
         trace(*args, R, t, np.zeros(3), np.array([[0.0, 0.0, 1.0]]), 0.5, 1.0, 0.1, 0.1, 4, 0.0, np.empty((1, 1)))
         sums_at(args[0], np.zeros((1, 1), dtype=np.int64), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
                 np.empty(1, dtype=np.int64))

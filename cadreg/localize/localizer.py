@@ -312,9 +312,9 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
             # points keeps FIRST_LOOK_WIDER times as many as the screen will for the full one. It reads the
             # coarse field (a lower bound of the distance): a 100-room frame's first look 45 -> 15 ms.
             first = score_poses(self.first_look_field, screen_xyz[: max(MIN_SCREEN_POINTS, len(screen_xyz) // 4)],
-                                hyp.R, hyp.t, tau_m=mc.score_tau_m)
+                                hyp.R_table, hyp.t, rot=hyp.rot, tau_m=mc.score_tau_m)
             hyp = hyp.take(self._screened(hyp, first, wider=FIRST_LOOK_WIDER))
-        screen = score_poses(self.field, screen_xyz, hyp.R, hyp.t, tau_m=mc.score_tau_m)
+        screen = score_poses(self.field, screen_xyz, hyp.R_table, hyp.t, rot=hyp.rot, tau_m=mc.score_tau_m)
         hyp = hyp.take(self._screened(hyp, screen))
         score_graph(hyp, centroids, classes, self.graph, match_radius_m=mc.match_radius_m,
                     edge_max_m=self.site.edge_max_m, alpha=mc.alpha, beta=mc.beta)

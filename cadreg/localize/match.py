@@ -120,11 +120,14 @@ class MapGraph:
 class Hypotheses:
     """A batch of pose hypotheses T_map_camera = [R | t].
 
-    R : (h, 3, 3), t : (h, 3) float64. seed : (h, 2) int, the (scan object, map node) pair that generated each
-    (map node -1 for fallback seeds). Scores are filled by `score_graph` / the geometric check.
+    R_table : (h, 3, 3) rotations, one a hypothesis; or, with rot (h,) int, the rotations the hypotheses index
+    (`R` makes the (h, 3, 3) on first read). A yaw sweep's hypotheses share its few dozen rotations, and a
+    building's frame makes 50-450 k of them: a (3, 3) each was most of what they cost to make, for the few hundred
+    that pass the screen to use. t : (h, 3) float64. seed : (h, 2) int, the (scan object, map node) pair that
+    generated each (map node -1 for fallback seeds). Scores are filled by `score_graph` / the geometric check.
     """
 
-    R: np.ndarray
+    R_table: np.ndarray
     t: np.ndarray
     seed: np.ndarray
     s_v: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -132,9 +135,17 @@ class Hypotheses:
     sim: np.ndarray = field(default_factory=lambda: np.zeros(0))
     geometric: np.ndarray = field(default_factory=lambda: np.zeros(0))
     assignment: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
+    rot: np.ndarray | None = None
+
+    @property
+    def R(self) -> np.ndarray:
+        """(h, 3, 3) rotation of each hypothesis (made from the table on first read, then held)."""
+        if self.rot is not None:
+            self.R_table, self.rot = self.R_table[self.rot], None
+        return self.R_table
 
     def __len__(self) -> int:
-        return len(self.R)
+        return len(self.t)
 
     @classmethod
     def empty(cls) -> "Hypotheses":
@@ -150,18 +161,31 @@ class Hypotheses:
         parts = [p for p in parts if len(p)]
         if not parts:
             return cls.empty()
-        return cls(np.concatenate([p.R for p in parts]), np.concatenate([p.t for p in parts]),
-                   np.concatenate([p.seed for p in parts]))
+        t, seed = np.concatenate([p.t for p in parts]), np.concatenate([p.seed for p in parts])
+        if all(p.rot is None for p in parts):
+            return cls(np.concatenate([p.R_table for p in parts]), t, seed)
+        # one table of all the parts' rotations, each part's indices moved past the tables before it
+        start = np.cumsum([0] + [len(p.R_table) for p in parts[:-1]])
+        rot = np.concatenate([(np.arange(len(p)) if p.rot is None else p.rot) + k for p, k in zip(parts, start)])
+        return cls(np.concatenate([p.R_table for p in parts]), t, seed, rot=rot)
 
     def take(self, index: np.ndarray) -> "Hypotheses":
         def pick(a: np.ndarray) -> np.ndarray:
-            return a[index] if len(a) == len(self.R) else a
-        return Hypotheses(self.R[index], self.t[index], self.seed[index], pick(self.s_v), pick(self.s_e),
-                          pick(self.sim), pick(self.geometric), pick(self.assignment))
+            return a[index] if len(a) == len(self) else a
+        if self.rot is None:
+            R_table, rot = self.R_table[index], None
+        else:
+            R_table, rot = self.R_table, self.rot[index]
+        return Hypotheses(R_table, self.t[index], self.seed[index], pick(self.s_v), pick(self.s_e),
+                          pick(self.sim), pick(self.geometric), pick(self.assignment), rot=rot)
+
+    def rotation(self, i: int) -> np.ndarray:
+        """(3, 3) rotation of hypothesis i (from the table: no (h, 3, 3) is made)."""
+        return self.R_table[i if self.rot is None else self.rot[i]]
 
     def T(self, i: int) -> np.ndarray:
         T = np.eye(4)
-        T[:3, :3] = self.R[i]
+        T[:3, :3] = self.rotation(i)
         T[:3, 3] = self.t[i]
         return T
 
@@ -214,7 +238,8 @@ def gravity_hypotheses(scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: M
     # Single objects: the object's centroid fixes the translation for each yaw of a sweep.
     yaws = np.radians(np.arange(0.0, 360.0, yaw_step_deg))
     Ryaw = yaw_rotations(up, yaws)
-    RL = Ryaw @ R_level  # each yaw's rotation of the camera, once (a building repeats them for every node)
+    RL = Ryaw @ R_level  # each yaw's rotation of the camera, once: the single objects' hypotheses index them
+    yaw_index = np.arange(len(yaws))
     grids: dict[float, np.ndarray] = {}  # offsets by reach: a building's nodes share a few
     for i in range(len(c)):
         nodes = np.flatnonzero(graph.cls == scan_cls[i])
@@ -222,9 +247,8 @@ def gravity_hypotheses(scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: M
             continue
         Rc = Ryaw @ c[i]  # (y, 3)
         t = graph.centroid[nodes][:, None, :] - Rc[None, :, :]  # (k, y, 3)
-        R = np.broadcast_to(RL[None], (len(nodes), len(yaws), 3, 3))
         seed = np.stack(np.broadcast_arrays(np.full((len(nodes), len(yaws)), i), nodes[:, None]), axis=-1)
-        parts.append(Hypotheses(R.reshape(-1, 3, 3), t.reshape(-1, 3), seed.reshape(-1, 2)))
+        parts.append(Hypotheses(RL, t.reshape(-1, 3), seed.reshape(-1, 2), rot=np.tile(yaw_index, len(nodes))))
         if offset_step_m > 0:
             for k in nodes:
                 reach = min(max_offset_m, 0.5 * float(np.max(graph.extent[k][:2])) if len(graph.extent) else 0.0)
@@ -234,8 +258,8 @@ def gravity_hypotheses(scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: M
                 if len(offsets) == 0:
                     continue
                 tk = (graph.centroid[k] - Rc)[:, None, :] + offsets[None, :, :]  # (y, o, 3)
-                Rk = np.broadcast_to(RL[:, None], (len(yaws), len(offsets), 3, 3)).reshape(-1, 3, 3)
-                parts.append(Hypotheses(Rk, tk.reshape(-1, 3), np.tile([i, k], (len(Rk), 1))))
+                parts.append(Hypotheses(RL, tk.reshape(-1, 3), np.tile([i, k], (len(yaws) * len(offsets), 1)),
+                                        rot=np.repeat(yaw_index, len(offsets))))
     # Pairs: the horizontal direction between two objects fixes the yaw.
     for i, j in permutations(range(len(c)), 2):
         if i > j:
@@ -271,12 +295,13 @@ def gravity_hypotheses(scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: M
         # The camera centre is t: put it at the height the floor says, keep its horizontal position. Per node: the
         # camera's height over the floor under the seed's map node.
         height = np.broadcast_to(np.asarray(camera_height_m, dtype=np.float64), (len(graph.ids),))[hyp.seed[:, 1]]
-        hyp.t = hyp.t - np.outer(hyp.t @ up, up) + np.outer(height, up)
+        hyp.t -= np.outer(hyp.t @ up, up)  # in place, in the order t - (t·up) up + height up takes
+        hyp.t += np.outer(height, up)
     elif scan_top is not None and len(graph.top):
         h_top = graph.top[hyp.seed[:, 1]] - scan_top[hyp.seed[:, 0]]
         t_top = hyp.t - np.outer(hyp.t @ up, up) + np.outer(h_top, up)
-        hyp = Hypotheses(np.concatenate([hyp.R, hyp.R]), np.concatenate([hyp.t, t_top]),
-                         np.concatenate([hyp.seed, hyp.seed]))
+        hyp = Hypotheses(hyp.R_table, np.concatenate([hyp.t, t_top]), np.concatenate([hyp.seed, hyp.seed]),
+                         rot=np.tile(np.arange(len(hyp)) if hyp.rot is None else hyp.rot, 2))
     return hyp
 
 

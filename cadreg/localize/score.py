@@ -165,17 +165,18 @@ def inlier_score(distances: np.ndarray, tau_m: float) -> np.ndarray:
 
 
 def score_poses(field: DistanceField, points_camera: np.ndarray, R_map_camera: np.ndarray, t_map_camera: np.ndarray,
-                *, tau_m: float = 0.1) -> np.ndarray:
+                *, tau_m: float = 0.1, rot: np.ndarray | None = None) -> np.ndarray:
     """Score many poses at once (`inlier_score` of the field's distances at each pose's points, in one compiled loop:
     no (h, m) array of distances is made).
 
-    points_camera : (m, 3) float camera frame. R_map_camera : (h, 3, 3); t_map_camera : (h, 3).
-    Returns (h,) float64 soft inlier fractions.
+    points_camera : (m, 3) float camera frame. R_map_camera : (h, 3, 3), or with rot (h,) int the rotations rot
+    indexes (`match.Hypotheses.R_table`); t_map_camera : (h, 3). Returns (h,) float64 soft inlier fractions.
     """
-    out = np.empty(len(R_map_camera))
+    out = np.empty(len(t_map_camera))
     table = field_kernels.NO_TABLE if field.step_m is None else _quantized_scores(field.step_m, float(tau_m))
+    rot = np.arange(len(t_map_camera)) if rot is None else np.asarray(rot, dtype=np.int64)
     field_kernels.score_poses(*field.kernel_args(), field_kernels.floats(points_camera),
-                              field_kernels.floats(R_map_camera), field_kernels.floats(t_map_camera), float(tau_m),
+                              field_kernels.floats(R_map_camera), rot, field_kernels.floats(t_map_camera), float(tau_m),
                               table, out)
     return out
 
