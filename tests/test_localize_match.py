@@ -4,6 +4,7 @@ check on the distance field."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from cadreg.geometry import (invert_T, make_T, pose_errors, rotation_angle_deg, rotation_between,
@@ -169,6 +170,8 @@ def test_a_yaw_sweep_shares_its_rotations_and_scores_as_one_rotation_a_hypothesi
     assert sub.rot is None and R.shape == (len(pick), 3, 3)
     assert np.array_equal(R, hyp.R_table[hyp.rot[pick]])
     assert np.array_equal(by_table, score_poses(field, pts, R, sub.t))
+    with pytest.raises(ValueError):  # the compiled loop reads the table unchecked: an index past it is refused
+        score_poses(field, pts, sub.R_table[:2], sub.t[:3], rot=np.array([0, 1, 2]))
     both = Hypotheses.concat([sub, Hypotheses.of_pose(T), hyp.take(pick[:5])])
     assert both.rot is not None and len(both) == len(pick) + 6
     assert np.array_equal(both.R[len(pick)], T[:3, :3]) and np.array_equal(both.R[-5:], hyp.R[pick[:5]])

@@ -12,7 +12,8 @@ from scipy.spatial.transform import Rotation
 from cadreg import Site
 from cadreg.config import LocalizeConfig, MatchConfig, RegionConfig
 from cadreg.geometry import pose_errors
-from cadreg.localize.localizer import Localizer, Renders
+from cadreg.localize.building_views import Renders
+from cadreg.localize.localizer import Localizer
 from cadreg.localize.match import MapGraph
 from cadreg.localize.stages import Refined
 from cadreg.localize.twins import RoomTwins

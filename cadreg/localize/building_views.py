@@ -5,9 +5,10 @@ one of them lacks or the neighbour seen over a wall. After the best contenders a
 moved into each room that repeats its room (`twins.py`) and looked at there along the frame's rays
 (`field_view.py`): a copy that shows the frame better is refined and may win, one that shows it as well stands as
 a rival (the answer is then `ambiguous`), and when poses look the same along the rays the frame's labelled
-objects, then how closely its points lie on the map, order them (`Localizer._refine` calls these in turn).
+objects, then how closely its points lie on the map, order them (`refine_stage.RefineStage._rank_building`
+calls these in turn).
 
-`BuildingViews` is a part of `Localizer` (its base class), kept in a module of its own: its methods read the
+`BuildingViews` is a part of `Localizer` (one of its base classes), kept in a module of its own: its methods read the
 localizer's `config`, `field` (the site's distance field), `maps` (`RegionMaps`), `twins` (`RoomTwins`), `graph`
 (`MapGraph`) and its `_distinct`, `_distinct_from_all` and `region_of`.
 """
@@ -78,7 +79,7 @@ class Renders:
 
 
 class BuildingViews:
-    """The refine stage's steps of a building (module docstring): `Localizer`'s base."""
+    """The refine stage's steps of a building (module docstring): a base class of `Localizer`."""
 
     def _promote_twins(self, scan: Scan, refined: list[Refined], twins: list[Refined], refine,
                        candidates: list[Candidate], renders: Renders, center_camera: np.ndarray) -> list[Refined]:

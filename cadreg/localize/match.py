@@ -120,10 +120,10 @@ class MapGraph:
 class Hypotheses:
     """A batch of pose hypotheses T_map_camera = [R | t].
 
-    R_table : (h, 3, 3) rotations, one a hypothesis; or, with rot (h,) int, the rotations the hypotheses index
-    (`R` makes the (h, 3, 3) on first read). A yaw sweep's hypotheses share its few dozen rotations, and a
-    building's frame makes 50-450 k of them: a (3, 3) each was most of what they cost to make, for the few hundred
-    that pass the screen to use. t : (h, 3) float64. seed : (h, 2) int, the (scan object, map node) pair that
+    R_table : (h, 3, 3) rotations, one a hypothesis; or, with rot (h,) int, (u, 3, 3) rotations the hypotheses
+    index (`R` makes the (h, 3, 3) on first read). A yaw sweep's hypotheses share its few dozen rotations, and a
+    100-room building's frame makes 10-450 k of them: a (3, 3) each was most of what they cost to make, for the few
+    hundred that pass the screen to use. t : (h, 3) float64. seed : (h, 2) int, the (scan object, map node) pair that
     generated each (map node -1 for fallback seeds). Scores are filled by `score_graph` / the geometric check.
     """
 
@@ -164,10 +164,17 @@ class Hypotheses:
         t, seed = np.concatenate([p.t for p in parts]), np.concatenate([p.seed for p in parts])
         if all(p.rot is None for p in parts):
             return cls(np.concatenate([p.R_table for p in parts]), t, seed)
-        # one table of all the parts' rotations, each part's indices moved past the tables before it
-        start = np.cumsum([0] + [len(p.R_table) for p in parts[:-1]])
-        rot = np.concatenate([(np.arange(len(p)) if p.rot is None else p.rot) + k for p, k in zip(parts, start)])
-        return cls(np.concatenate([p.R_table for p in parts]), t, seed, rot=rot)
+        # One table of the parts' rotations: parts that index one array (a sweep's objects and offsets index its
+        # yaws) share its place in it, and each part's indices move to where its array starts.
+        blocks: list[np.ndarray] = []
+        start_of: dict[int, int] = {}
+        rot, size = [], 0
+        for p in parts:
+            if id(p.R_table) not in start_of:
+                start_of[id(p.R_table)], size = size, size + len(p.R_table)
+                blocks.append(p.R_table)
+            rot.append((np.arange(len(p)) if p.rot is None else p.rot) + start_of[id(p.R_table)])
+        return cls(np.concatenate(blocks), t, seed, rot=np.concatenate(rot))
 
     def take(self, index: np.ndarray) -> "Hypotheses":
         def pick(a: np.ndarray) -> np.ndarray:
