@@ -174,14 +174,11 @@ def score_poses(field: DistanceField, points_camera: np.ndarray, R_map_camera: n
     """
     out = np.empty(len(t_map_camera))
     table = field_kernels.NO_TABLE if field.step_m is None else _quantized_scores(field.step_m, float(tau_m))
-    if rot is None:
-        rot = np.arange(len(t_map_camera))
-    else:
-        rot = np.asarray(rot, dtype=np.int64)
-        # the compiled loop reads R[rot[h]] unchecked
-        if len(rot) != len(t_map_camera) or (len(rot) and not 0 <= rot.min() <= rot.max() < len(R_map_camera)):
-            raise ValueError(f"{len(rot)} rotation indices for {len(t_map_camera)} poses and "
-                             f"{len(R_map_camera)} rotations")
+    rot = np.arange(len(R_map_camera)) if rot is None else np.asarray(rot, dtype=np.int64)
+    # the compiled loop reads R[rot[h]] unchecked
+    if len(rot) != len(t_map_camera) or (len(rot) and not 0 <= rot.min() <= rot.max() < len(R_map_camera)):
+        raise ValueError(f"{len(rot)} rotation indices for {len(t_map_camera)} poses and {len(R_map_camera)} "
+                         "rotations")
     field_kernels.score_poses(*field.kernel_args(), field_kernels.floats(points_camera),
                               field_kernels.floats(R_map_camera), rot, field_kernels.floats(t_map_camera), float(tau_m),
                               table, out)
