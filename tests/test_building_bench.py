@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from cadreg.bench import FrameOutcome, ViewTruth, format_table, summarize, views_from_doc
 from cadreg.cli.main import main
@@ -73,6 +74,44 @@ def test_layout_is_deterministic_and_drops_at_the_given_rate() -> None:
     assert turns == {0, 90, 180, 270}
     none = generate_layout([_source()], config.model_copy(update={"drop_prob": 0.0}))
     assert all(not r.drop_objects for r in none.rooms)
+
+
+def _boxed_source() -> RoomSource:
+    """`_source()` with a 0.4 × 0.6 m box for each CAD object, spread over the room: objects to move."""
+    base = _source()
+    centres = [np.array([0.3 + 0.45 * k, 0.6 + 0.25 * (k % 3)]) for k in range(len(CAD_IDS))]
+    corners = tuple(np.array([[x, y] for x in (-0.2, 0.2) for y in (-0.3, 0.3) for _ in (0, 1)]) + c for c in centres)
+    return RoomSource(base.name, base.bundle, base.footprint_min, base.footprint_max, CAD_IDS, cad_corners=corners)
+
+
+def test_layout_moves_kept_objects_inside_the_room_and_keeps_the_turns_and_drops() -> None:
+    """--move-prob: each CAD object a copy keeps is turned about the vertical through its box centre (at most
+    move_max_deg) and shifted (at most move_max_m) so that its box stays in the footprint; the turns and drops of a
+    seed do not depend on it, nor does anything without it (no "move_objects")."""
+    source = _boxed_source()
+    still = LayoutConfig(site_id="b20", rooms=20, drop_prob=0.35, seed=3)
+    moving = still.model_copy(update={"move_prob": 1.0, "move_max_m": 0.3, "move_max_deg": 30.0})
+    a, b = generate_layout([source], still), generate_layout([source], moving)
+    assert b == generate_layout([source], moving)
+    assert all(not r.move_objects for r in a.rooms)
+    assert [(r.T_building_room, r.drop_objects) for r in a.rooms] == [(r.T_building_room, r.drop_objects) for r in b.rooms]
+    corners = dict(zip(CAD_IDS, source.cad_corners))
+    moved = 0
+    for r in b.rooms:
+        assert not set(r.move_objects) & set(r.drop_objects)
+        for node_id, T in r.moves().items():
+            assert T[2, 3] == 0.0 and np.allclose(T[2, :3], [0, 0, 1])  # about the vertical, no lift
+            assert math.degrees(abs(math.atan2(T[1, 0], T[0, 0]))) <= 30.0 + 1e-9
+            xy = corners[node_id]
+            centre = (xy.min(axis=0) + xy.max(axis=0)) / 2
+            assert np.linalg.norm(T[:2, :2] @ centre + T[:2, 3] - centre) <= 0.3 + 1e-9
+            after = xy @ T[:2, :2].T + T[:2, 3]
+            assert np.all(after >= source.footprint_min) and np.all(after <= source.footprint_max)
+            moved += 1
+    kept = sum(len(CAD_IDS) - len(r.drop_objects) for r in b.rooms)
+    assert moved >= 0.8 * kept  # a box near the wall may find no place within MOVE_TRIES draws
+    with pytest.raises(Exception, match="no object boxes"):
+        generate_layout([_source()], moving)
 
 
 @pytest.mark.realdata
@@ -317,3 +356,91 @@ def test_a_composed_room_without_an_object_keeps_the_floor_it_stood_on(twin_room
             assert not np.any(in_b & (cloud.class_index == k))
             structure_a = np.count_nonzero(in_a & (cloud.class_index < 0))
             assert structure_a > 20 and np.count_nonzero(in_b & (cloud.class_index < 0)) >= 0.8 * structure_a
+
+
+def _moved_chair_layout(bundle: str):
+    """Rooms a and b, 20 m apart: b has the chair cad-4 turned by 90° about its centre and pushed 0.4 m along y."""
+    from cadreg.site.compose import Layout, RoomEntry
+
+    return Layout(site_id="moved", rooms=[
+        RoomEntry(name="a", bundle=bundle, T_building_room=np.eye(4).tolist()),
+        RoomEntry(name="b", bundle=bundle, T_building_room=make_T(t=[20.0, 0.0, 0.0]).tolist(),
+                  move_objects={"cad-4": _chair_move().tolist()}),
+    ])
+
+
+def _chair_move() -> np.ndarray:
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    return make_T(turn, CHAIR_M * [1, 1, 0] + [0.0, 0.4, 0.0] - turn @ (CHAIR_M * [1, 1, 0]))
+
+
+@pytest.mark.realdata
+def test_a_composed_room_with_a_moved_object_carries_its_node_and_points(scene0470_site_dir: Path, tmp_path: Path) -> None:
+    """`move_objects`: the moved node's centroid and box and its points in both clouds are carried by the
+    transform; the floor where it stood stays; a room keeps as many of the object's points as its copy."""
+    from cadreg.site.bundle import Site
+    from cadreg.site.compose import RoomEntry, compose_site, inside_boxes
+
+    room = Site.load(scene0470_site_dir)
+    layout = _moved_chair_layout(str(scene0470_site_dir))
+    site = compose_site(layout, tmp_path)
+    T_b = make_T(t=[20.0, 0.0, 0.0])
+    chair = next(n for n in room.graph.nodes if n.id == "cad-4")
+    moved = next(n for n in site.graph.nodes if n.id == "b/cad-4")
+    M = T_b @ _chair_move()
+    assert np.allclose(moved.centroid, M[:3, :3] @ chair.centroid + M[:3, 3])
+    assert np.allclose(moved.box_R, M[:3, :3] @ chair.box_R)
+    k = site.classes.index("chair")
+    for cloud in (site.map, site.raw):
+        xyz = cloud.points.astype(np.float64)
+        in_a = inside_boxes(xyz, [chair]) & (cloud.class_index == k)
+        old_b = inside_boxes(xyz - [20.0, 0.0, 0.0], [chair])
+        new_b = inside_boxes(xyz, [moved]) & (cloud.class_index == k)
+        assert in_a.sum() > 20 and new_b.sum() >= in_a.sum() - 3  # (float32 at the box's faces)
+        carried = xyz[in_a] @ M[:3, :3].T + M[:3, 3]  # room a's chair points, where room b has them
+        assert np.all(cKDTree(xyz[new_b]).query(carried)[0] < 1e-4)
+        assert not np.any(old_b & (cloud.class_index == k) & ~new_b)
+        assert np.count_nonzero(old_b & (cloud.class_index < 0)) >= 0.8 * np.count_nonzero(
+            inside_boxes(xyz, [chair]) & (cloud.class_index < 0))  # the floor under it stays
+    assert site.manifest["inputs"]["composed"][1]["move_objects"] == {"cad-4": _chair_move().tolist()}
+    assert "move_objects" not in site.manifest["inputs"]["composed"][0]
+    with pytest.raises(Exception, match="both dropped and moved"):
+        RoomEntry(name="x", bundle="r", T_building_room=np.eye(4).tolist(), drop_objects=["cad-4"],
+                  move_objects={"cad-4": np.eye(4).tolist()})
+    with pytest.raises(Exception, match="rigid"):
+        RoomEntry(name="x", bundle="r", T_building_room=np.eye(4).tolist(), move_objects={"cad-4": (2 * np.eye(4)).tolist()})
+    bad = layout.model_copy(update={"rooms": [layout.rooms[0].model_copy(update={"move_objects": {"cad-99": np.eye(4).tolist()}})]})
+    with pytest.raises(Exception, match="cad-99"):
+        compose_site(bad, tmp_path)
+
+
+@pytest.mark.realdata
+def test_building_mesh_moves_the_faces_of_moved_objects_and_the_oracle_tells_the_rooms_apart(scene_mesh,
+                                                                                             scene_nodes) -> None:
+    """A moved object's faces are carried by its transform onto copies of their vertices and leave where it stood;
+    a view of the chair is then repeated in neither room, a view away from it in both."""
+    from cadreg.render import MeshRenderer, camera_rig
+    from cadreg.render.building import RepeatOracle, building_mesh, building_rooms
+    from cadreg.site.compose import inside_boxes
+
+    rooms = building_rooms(_moved_chair_layout("r"), {"r": scene_mesh}, {"r": scene_nodes})
+    b = rooms[1].mesh
+    chair = next(n for n in scene_nodes if n.id == "cad-4")
+    mine = inside_boxes(scene_mesh.vertices, [chair]) & (scene_mesh.labels == 5)  # NYU40 chair
+    own = np.all(mine[scene_mesh.faces], axis=1)
+    touching = np.any(mine[scene_mesh.faces], axis=1)
+    assert own.sum() > 500
+    assert len(b.faces) == len(scene_mesh.faces) - touching.sum() + own.sum()
+    n = len(scene_mesh.vertices)
+    assert not np.any(mine[b.faces[b.faces < n].reshape(-1)])  # nothing of the chair where it stood
+    new = b.faces[np.all(b.faces >= n, axis=1)]
+    assert len(new) == own.sum() and np.all(b.labels[new] == 5)
+    M = _chair_move()
+    used = np.unique(scene_mesh.faces[own])
+    assert np.allclose(b.vertices[n:], scene_mesh.vertices[used] @ M[:3, :3].T + M[:3, 3])
+    depth_intr, _, T_color_depth = camera_rig()
+    oracle = RepeatOracle(MeshRenderer(building_mesh(rooms)), rooms, depth_intr, T_color_depth)
+    at_chair = look_at(CAMERA_M, CHAIR_M)
+    assert oracle.agreements(0, at_chair)["b"] < 0.9
+    assert oracle.repeated_in(0, at_chair) == [] and oracle.repeated_in(1, at_chair) == []
+    assert oracle.repeated_in(0, look_at(CAMERA_M, TABLE_CORNER_M)) == ["b"]

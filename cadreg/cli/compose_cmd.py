@@ -33,8 +33,9 @@ def _room_arg(text: str) -> tuple[str, Path]:
 
 
 def _layout_json(doc: dict) -> str:
-    """The layout as JSON with one room per line (diffable, and readable at 100 rooms)."""
-    rooms = ",\n  ".join(json.dumps(r) for r in doc["rooms"])
+    """The layout as JSON with one room per line (diffable, and readable at 100 rooms); a room that moves no object
+    has no "move_objects"."""
+    rooms = ",\n  ".join(json.dumps({k: v for k, v in r.items() if k != "move_objects" or v}) for r in doc["rooms"])
     head = json.dumps({k: v for k, v in doc.items() if k != "rooms"})[:-1]
     return f"{head}, \"rooms\": [\n  {rooms}\n]}}\n"
 
@@ -45,6 +46,7 @@ def _layout(args: argparse.Namespace) -> int:
 
     try:
         config = LayoutConfig(site_id=args.site_id, rooms=args.rooms, gap_m=args.gap_m, drop_prob=args.drop_prob,
+                              move_prob=args.move_prob, move_max_m=args.move_max_m, move_max_deg=args.move_max_deg,
                               seed=args.seed)
     except ValueError as exc:
         raise ConfigError(str(exc)) from exc
@@ -60,10 +62,11 @@ def _layout(args: argparse.Namespace) -> int:
     out.write_text(_layout_json(layout.model_dump()))
     cols, rows = grid_shape(config.rooms)
     dropped = sum(len(r.drop_objects) for r in layout.rooms)
+    moved = sum(len(r.move_objects) for r in layout.rooms)
     cad = sum(len(sources[k % len(sources)].cad_ids) for k in range(config.rooms))
     print(json.dumps({"site_id": layout.site_id, "rooms": len(layout.rooms), "grid": [cols, rows],
                       "sources": {s.name: s.bundle for s in sources}, "cad_objects": cad, "dropped": dropped,
-                      "seed": config.seed, "out": str(out)}))
+                      "moved": moved, "seed": config.seed, "out": str(out)}))
     return 0
 
 
@@ -71,7 +74,8 @@ def register_site_compose(site_sub: argparse._SubParsersAction) -> None:
     c = site_sub.add_parser(
         "compose", help="compose a multi-room site from room bundles placed by a layout",
         description="LAYOUT.json: {\"site_id\", \"rooms\": [{\"name\", \"bundle\" (relative to the layout), "
-                    "\"T_building_room\" (4x4), \"drop_objects\" (node ids, optional)}]}. Writes one bundle.",
+                    "\"T_building_room\" (4x4), \"drop_objects\" (node ids, optional), \"move_objects\" ({node id: "
+                    "4x4 room-frame transform}, optional)}]}. Writes one bundle.",
     )
     c.add_argument("layout", type=Path, help="layout JSON file")
     c.add_argument("--out", required=True, type=Path, help="bundle directory to write")
@@ -80,13 +84,18 @@ def register_site_compose(site_sub: argparse._SubParsersAction) -> None:
         "layout", help="generate a benchmark building's LAYOUT.json: copies of room bundles on a grid",
         description="Rooms r000, r001, ... on a near-square grid, each a copy of a --room bundle (cycled), turned "
                     "about z by a random multiple of 90 degrees about its footprint centre, footprints --gap-m "
-                    "apart, each CAD object dropped with probability --drop-prob. Deterministic per --seed.",
+                    "apart, each CAD object dropped with probability --drop-prob, each one kept moved (turned and "
+                    "shifted inside the room) with probability --move-prob. Deterministic per --seed.",
     )
     g.add_argument("--room", action="append", required=True, type=_room_arg, metavar="NAME=BUNDLE_DIR",
                    help="a room bundle to copy (repeatable)")
     g.add_argument("--rooms", type=int, required=True, help="number of rooms")
     g.add_argument("--gap-m", type=float, default=0.6, help="gap between neighbouring footprints, metres")
     g.add_argument("--drop-prob", type=float, default=0.35, help="probability of dropping each CAD object of a copy")
+    g.add_argument("--move-prob", type=float, default=0.0,
+                   help="probability of moving each CAD object a copy keeps (default 0: none)")
+    g.add_argument("--move-max-m", type=float, default=0.5, help="largest shift of a moved object, metres")
+    g.add_argument("--move-max-deg", type=float, default=45.0, help="largest turn of a moved object, degrees")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--site-id", required=True, help="site id of the building")
     g.add_argument("--out", required=True, type=Path, help="layout JSON to write (bundle paths relative to it)")

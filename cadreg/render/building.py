@@ -44,7 +44,7 @@ from ..errors import ConfigError, InvalidFrame
 from ..geometry import transform_points
 from ..io.frames import FramesWriter
 from ..labels import nyu40_label_map
-from ..site.compose import Layout, inside_boxes
+from ..site.compose import Layout, copy_changes, inside_boxes
 from ..site.graph import ObjectNode
 from .mesh import LabelledMesh
 from .poses import PoseSampler
@@ -67,32 +67,57 @@ class OracleConfig(BaseModel):
     min_agreement: float = Field(0.97, gt=0, le=1)
 
 
-def room_copy_mesh(mesh: LabelledMesh, dropped: list[ObjectNode]) -> LabelledMesh:
-    """The room's mesh (room frame) without the faces of its dropped objects: those touching a vertex of a dropped
-    node's class inside its box grown by `compose.DROP_MARGIN_M` (every vertex in the box for a mesh whose labels
-    name no classes). The floor and the wall the object stood on and against stay, as they would in a room without
-    it (cutting them out left a hole in the frames, no depth, that no sensor shows), and so do a door or a window
-    the box reaches. Vertices are kept (unreferenced ones are harmless), so labels and instances keep their
-    indices."""
-    if not dropped:
+def room_copy_mesh(mesh: LabelledMesh, dropped: list[ObjectNode],
+                   moved: list[tuple[ObjectNode, np.ndarray]] = ()) -> LabelledMesh:
+    """The room's mesh (room frame) as a copy of the room has it. An object's vertices are those of its node's class
+    inside its box grown by `compose.DROP_MARGIN_M` (every vertex in the box for a mesh whose labels name no
+    classes), the rule compose applies to the map's points. The faces touching a dropped object's vertices go; a
+    moved object ((node, (4, 4) room frame) pairs) has its faces (those whose three vertices are its own) carried by
+    its transform onto copies of their vertices, and the faces touching it go from where it stood. The floor and
+    the wall the object stood on and against stay, as they would in a room without it there (cutting them out left
+    a hole in the frames, no depth, that no sensor shows), and so do a door or a window the box reaches. Vertices
+    are kept (unreferenced ones are harmless), so labels and instances keep their indices."""
+    if not dropped and not moved:
         return mesh
     names = nyu40_label_map() if mesh.labels is not None and mesh.label_set == "nyu40" else None
     if names is None:
-        gone = inside_boxes(mesh.vertices, dropped)
+        vertex_class = None
     else:
         ids, inverse = np.unique(mesh.labels, return_inverse=True)
         vertex_class = np.array([names.get(int(i), "") for i in ids], dtype=object)[inverse.reshape(-1)]
-        gone = np.zeros(len(mesh.vertices), dtype=bool)
-        for node in dropped:
-            gone |= inside_boxes(mesh.vertices, [node]) & (vertex_class == node.cls)
-    faces = mesh.faces[~np.any(gone[mesh.faces], axis=1)]
-    return LabelledMesh(mesh.vertices, faces, mesh.colors, mesh.labels, mesh.label_set, mesh.instances)
+
+    def object_vertices(node: ObjectNode) -> np.ndarray:
+        inside = inside_boxes(mesh.vertices, [node])
+        return inside if vertex_class is None else inside & (vertex_class == node.cls)
+
+    gone = np.zeros(len(mesh.vertices), dtype=bool)
+    for node in dropped:
+        gone |= object_vertices(node)
+    vertices, faces = [mesh.vertices], [mesh.faces[~np.any(gone[mesh.faces], axis=1)]]
+    picks = []  # the source vertex of each appended one
+    count = len(mesh.vertices)
+    for node, T in moved:
+        mine = object_vertices(node) & ~gone
+        own = mesh.faces[np.all(mine[mesh.faces], axis=1)]
+        used = np.unique(own)
+        remap = np.full(len(mesh.vertices), -1, dtype=np.int64)
+        remap[used] = count + np.arange(len(used))
+        vertices.append(transform_points(T, mesh.vertices[used]))
+        faces.append(remap[own])
+        picks.append(used)
+        count += len(used)
+        gone |= mine
+        faces[0] = faces[0][~np.any(mine[faces[0]], axis=1)]
+    src = np.concatenate([np.arange(len(mesh.vertices))] + picks)
+    return LabelledMesh(np.concatenate(vertices), np.concatenate(faces), mesh.colors[src],
+                        None if mesh.labels is None else mesh.labels[src], mesh.label_set,
+                        None if mesh.instances is None else mesh.instances[src])
 
 
 @dataclass
 class BuildingRoom:
     """One room of the building: name, bundle (as in the layout), T_building_room (4, 4) room -> building,
-    mesh : its copy's LabelledMesh in the room frame (dropped objects removed)."""
+    mesh : its copy's LabelledMesh in the room frame (dropped objects removed, moved ones moved)."""
 
     name: str
     bundle: str
@@ -103,14 +128,10 @@ class BuildingRoom:
 def building_rooms(layout: Layout, meshes: dict[str, LabelledMesh],
                    nodes: dict[str, list[ObjectNode]]) -> list[BuildingRoom]:
     """The rooms of `layout`; `meshes` and `nodes` give, per bundle string of the layout, the room's labelled mesh
-    and its graph nodes (room frame). ConfigError for a dropped id the bundle's graph does not have."""
+    and its graph nodes (room frame). ConfigError for a dropped or moved id the bundle's graph does not have."""
     rooms = []
     for entry in layout.rooms:
-        by_id = {n.id: n for n in nodes[entry.bundle]}
-        unknown = sorted(set(entry.drop_objects) - set(by_id))
-        if unknown:
-            raise ConfigError(f"room {entry.name!r}: no object {unknown} to drop in {entry.bundle}")
-        mesh = room_copy_mesh(meshes[entry.bundle], [by_id[i] for i in entry.drop_objects])
+        mesh = room_copy_mesh(meshes[entry.bundle], *copy_changes(entry, nodes[entry.bundle]))
         rooms.append(BuildingRoom(entry.name, entry.bundle, np.asarray(entry.T_building_room, dtype=np.float64), mesh))
     return rooms
 

@@ -11,7 +11,9 @@ Bundle paths are relative to the layout file. The same bundle may appear several
 map and raw points and graph nodes are moved into the building frame; node ids become "<name>/<id>"; `drop_objects`
 removes objects of that room: their node, and their points in both clouds (inside the node's box grown by
 DROP_MARGIN_M, of the node's class: the floor and wall under and behind it stay), as when a chair is missing from
-one of two identical rooms. The graph's edges are rebuilt over all nodes with the rooms' δ (rooms touching each
+one of two identical rooms. `move_objects` ({node id: 4x4 rigid transform, room frame}) moves objects of that room
+the same way: the node and those points are carried by the transform (a chair pushed aside, a table turned), and
+the floor and wall they stood on and against stay where they were. The graph's edges are rebuilt over all nodes with the rooms' δ (rooms touching each
 other get edges across). Instance ids are offset per room so that they stay distinct. Each room is a region of the
 site (`regions.py`): its name, box, nodes and its rows of the two clouds (rooms are written one after the other).
 The building's distance field and each region's grid of points (`RegionGrids`) are built here and stored. The output
@@ -26,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from ..config import LocalizeConfig
 from ..errors import ConfigError, InvalidFileError
@@ -53,16 +55,45 @@ class RoomEntry(BaseModel):
     bundle: str = Field(min_length=1, description="room bundle directory, relative to the layout file")
     T_building_room: list[list[float]] = Field(description="4x4 room -> building transform, metres")
     drop_objects: list[str] = Field(default_factory=list, description="node ids (of the room's graph) to remove")
+    move_objects: dict[str, list[list[float]]] = Field(
+        default_factory=dict, description="node id (of the room's graph) -> 4x4 rigid transform, room frame, that "
+                                          "carries the object (its node and points) to where this copy has it")
 
     @field_validator("T_building_room")
     @classmethod
     def _rigid(cls, value: list[list[float]]) -> list[list[float]]:
-        T = np.asarray(value, dtype=float)
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise ValueError("must be a finite 4x4 matrix")
-        if not is_rigid(T, tol=1e-6):
-            raise ValueError("must be a rigid transform (rotation and translation)")
+        return _checked_rigid(value)
+
+    @field_validator("move_objects")
+    @classmethod
+    def _rigid_moves(cls, value: dict[str, list[list[float]]]) -> dict[str, list[list[float]]]:
+        for node_id, T in value.items():
+            try:
+                _checked_rigid(T)
+            except ValueError as exc:
+                raise ValueError(f"{node_id}: {exc}") from None
         return value
+
+    @model_validator(mode="after")
+    def _dropped_or_moved(self) -> "RoomEntry":
+        both = sorted(set(self.drop_objects) & set(self.move_objects))
+        if both:
+            raise ValueError(f"objects {both} are both dropped and moved")
+        return self
+
+    def moves(self) -> dict[str, np.ndarray]:
+        """`move_objects` as (4, 4) float64 arrays."""
+        return {node_id: np.asarray(T, dtype=np.float64) for node_id, T in self.move_objects.items()}
+
+
+def _checked_rigid(value: list[list[float]]) -> list[list[float]]:
+    """`value` when it is a finite 4x4 rigid transform; ValueError saying what it is not otherwise."""
+    T = np.asarray(value, dtype=float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError("must be a finite 4x4 matrix")
+    if not is_rigid(T, tol=1e-6):
+        raise ValueError("must be a rigid transform (rotation and translation)")
+    return value
 
 
 class Layout(BaseModel):
@@ -126,22 +157,37 @@ def inside_boxes(xyz: np.ndarray, nodes: list[ObjectNode], margin_m: float = DRO
     return inside
 
 
-def _kept_without(cloud: PointSet, dropped: list[ObjectNode], classes: list[str]) -> np.ndarray:
-    """(n,) bool: the points of `cloud` (room frame) a room without the `dropped` objects keeps: all but those of a
-    dropped node's class inside its oriented box grown by DROP_MARGIN_M (`classes`: the room site's class names).
-    The floor and wall under and behind the object stay, as in a room that never had it."""
-    xyz = cloud.points.astype(np.float64)
-    gone = np.zeros(len(xyz), dtype=bool)
+def _object_points(cloud: PointSet, node: ObjectNode, classes: list[str]) -> np.ndarray:
+    """(n,) bool: the points of `cloud` (room frame) that are `node`'s object: of its class, inside its oriented
+    box grown by DROP_MARGIN_M (`classes`: the room site's class names). The floor and wall under and behind the
+    object are not."""
+    k = classes.index(node.cls) if node.cls in classes else -2
+    return inside_boxes(cloud.points.astype(np.float64), [node]) & (cloud.class_index == k)
+
+
+def room_copy_cloud(cloud: PointSet, dropped: list[ObjectNode], moved: list[tuple[ObjectNode, np.ndarray]],
+                    classes: list[str]) -> PointSet:
+    """`cloud` (room frame) as a copy of the room has it: the `dropped` objects' points gone, each moved object's
+    points carried by its transform ((node, (4, 4) room frame) pairs); the floor and wall under and behind both
+    stay, as in a room where the object never stood there."""
+    gone = np.zeros(len(cloud), dtype=bool)
     for node in dropped:
-        k = classes.index(node.cls) if node.cls in classes else -2
-        gone |= inside_boxes(xyz, [node]) & (cloud.class_index == k)
-    return ~gone
+        gone |= _object_points(cloud, node, classes)
+    if moved:
+        points, normals = cloud.points.astype(np.float64), cloud.normals.astype(np.float64)
+        for node, T in moved:
+            mine = _object_points(cloud, node, classes) & ~gone
+            points[mine] = transform_points(T, points[mine])
+            normals[mine] = normals[mine] @ T[:3, :3].T
+        cloud = replace(cloud, points=points, normals=normals)
+    return cloud.take(~gone) if gone.any() else cloud
 
 
-def _moved_node(node: ObjectNode, name: str, T: np.ndarray) -> ObjectNode:
+def _moved_node(node: ObjectNode, T: np.ndarray, name: str | None = None) -> ObjectNode:
+    """`node` carried by the rigid transform T, its id prefixed by `name/` when given."""
     R, t = T[:3, :3], T[:3, 3]
-    return replace(node, id=f"{name}/{node.id}", centroid=R @ node.centroid + t, box_center=R @ node.box_center + t,
-                   box_R=R @ node.box_R)
+    return replace(node, id=node.id if name is None else f"{name}/{node.id}", centroid=R @ node.centroid + t,
+                   box_center=R @ node.box_center + t, box_R=R @ node.box_R)
 
 
 def _floor_height(up: np.ndarray, *clouds: PointSet) -> float:
@@ -168,6 +214,18 @@ def _building_up(rooms: list["_Room"]) -> np.ndarray:
     return up
 
 
+def copy_changes(entry: RoomEntry, nodes: list[ObjectNode]) -> tuple[list[ObjectNode], list[tuple[ObjectNode, np.ndarray]]]:
+    """The room's nodes its copy `entry` drops, and those it moves with their transforms; ConfigError naming an id
+    the room's graph (`nodes`) does not have."""
+    by_id = {n.id: n for n in nodes}
+    for what, ids in (("drop", entry.drop_objects), ("move", list(entry.move_objects))):
+        unknown = sorted(set(ids) - set(by_id))
+        if unknown:
+            raise ConfigError(f"room {entry.name!r}: no object {unknown} to {what} in {entry.bundle} "
+                              f"(has {sorted(by_id)})")
+    return [by_id[i] for i in entry.drop_objects], [(by_id[i], T) for i, T in entry.moves().items()]
+
+
 def compose_site(layout: Layout, root: str | Path) -> Site:
     """The building site of `layout` (bundle paths relative to `root`). Rooms must share their classes and label
     maps (the same label set and class names): ConfigError otherwise, and for a dropped id a room does not have."""
@@ -182,18 +240,15 @@ def compose_site(layout: Layout, root: str | Path) -> Site:
     maps, raws, nodes, regions = [], [], [], []
     map_at = raw_at = 0
     for k, r in enumerate(rooms):
-        ids = {n.id for n in r.site.graph.nodes}
-        unknown = sorted(set(r.entry.drop_objects) - ids)
-        if unknown:
-            raise ConfigError(f"room {r.entry.name!r}: no object {unknown} to drop (has {sorted(ids)})")
-        dropped = [n for n in r.site.graph.nodes if n.id in r.entry.drop_objects]
-        site_map, site_raw = r.site.map, r.site.raw
-        if dropped:
-            site_map = site_map.take(_kept_without(site_map, dropped, list(r.site.classes)))
-            site_raw = site_raw.take(_kept_without(site_raw, dropped, list(r.site.classes)))
+        dropped, moved = copy_changes(r.entry, r.site.graph.nodes)
+        classes = list(r.site.classes)
+        site_map = room_copy_cloud(r.site.map, dropped, moved, classes)
+        site_raw = room_copy_cloud(r.site.raw, dropped, moved, classes)
         maps.append(_moved(site_map, r.T, k * INSTANCE_STRIDE))
         raws.append(_moved(site_raw, r.T, k * INSTANCE_STRIDE))
-        room_nodes = [_moved_node(n, r.entry.name, r.T) for n in r.site.graph.nodes if n.id not in r.entry.drop_objects]
+        moves = r.entry.moves()
+        room_nodes = [_moved_node(_moved_node(n, moves[n.id]) if n.id in moves else n, r.T, r.entry.name)
+                      for n in r.site.graph.nodes if n.id not in r.entry.drop_objects]
         nodes += room_nodes
         # Each room is a region; its points are written contiguously, so the region is a slice of each cloud.
         regions.append(region_from_points(r.entry.name, [maps[-1].points, raws[-1].points], [n.id for n in room_nodes],
@@ -209,7 +264,9 @@ def compose_site(layout: Layout, root: str | Path) -> Site:
         manifest["up"] = [float(x) for x in up]
     manifest["inputs"] = {"composed": [{"name": r.entry.name, "bundle": r.entry.bundle, "site_id": r.site.site_id,
                                         "version": r.site.version, "T_building_room": r.entry.T_building_room,
-                                        "drop_objects": list(r.entry.drop_objects)} for r in rooms]}
+                                        "drop_objects": list(r.entry.drop_objects)}
+                                       | ({"move_objects": dict(r.entry.move_objects)} if r.entry.move_objects else {})
+                                       for r in rooms]}
     # The building's distance field is built here, room by room, and stored: a worker maps it instead of
     # rebuilding it over the whole building at every start.
     field_grid = building_field([np.concatenate([m.points, r.points]) for m, r in zip(maps, raws)])

@@ -11,8 +11,12 @@ turning:
   a room lower than its row's band sits at the band's bottom, so its gap to the row above is larger.
 
 Footprints therefore never overlap and are at least `gap_m` apart. Each CAD-sourced object (graph node source ==
-"cad") of each copy is dropped with probability `drop_prob`. One seeded generator draws, per room in order, the
-quarter turn and then the drops (CAD node ids in sorted order): the same seed gives the same layout.
+"cad") of each copy is dropped with probability `drop_prob`, and each one a copy keeps is moved with probability
+`move_prob`: turned about the vertical through its box centre by up to `move_max_deg` and shifted horizontally by
+up to `move_max_m`, redrawn (at most MOVE_TRIES times, else left) until its box stays inside the room's footprint.
+One seeded generator draws, per room in order, the quarter turn and then the drops (CAD node ids in sorted order),
+then, for every room in order again, the moves: the same seed gives the same layout, and the same turns and drops
+whatever `move_prob`.
 
     RoomSource.from_site(name, bundle, site)   what the generator needs of a room bundle
     generate_layout(sources, config) -> Layout the layout (cadreg/site/compose.py's model)
@@ -33,8 +37,13 @@ from .bundle import Site
 from .compose import Layout, RoomEntry
 
 
+# A moved object's draw is repeated at most this many times until its box stays inside the room's footprint.
+MOVE_TRIES = 8
+
+
 class LayoutConfig(BaseModel):
-    """How the building is laid out: room count, gap between footprints (metres), drop probability, seed."""
+    """How the building is laid out: room count, gap between footprints (metres), drop and move probabilities and
+    how far a move goes, seed."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
@@ -42,6 +51,10 @@ class LayoutConfig(BaseModel):
     rooms: int = Field(gt=0, le=10_000, description="number of rooms")
     gap_m: float = Field(0.6, ge=0, description="gap between neighbouring footprints, metres")
     drop_prob: float = Field(0.35, ge=0, le=1, description="probability that a CAD object of a copy is dropped")
+    move_prob: float = Field(0.0, ge=0, le=1, description="probability that a CAD object a copy keeps is moved")
+    move_max_m: float = Field(0.5, ge=0, description="largest horizontal shift of a moved object's box centre, metres")
+    move_max_deg: float = Field(45.0, ge=0, le=180, description="largest turn of a moved object about the vertical, "
+                                "degrees")
     seed: int = Field(0, ge=0)
 
 
@@ -53,6 +66,8 @@ class RoomSource:
     or absolute); footprint_min, footprint_max : (2,) float64 xy box of the room's raw points, levelled room frame,
     metres; cad_ids : ids of the graph nodes with source "cad", sorted. R_level : (3, 3) rotation taking the
     room's up (`Site.up`: a fused room's frame is its first camera's) onto +z; identity for a z-up room.
+    cad_corners : per CAD id, (8, 2) xy of its box's corners, levelled room frame (what a move must keep inside the
+    footprint); empty when the source's objects are not to be moved.
     """
 
     name: str
@@ -61,6 +76,7 @@ class RoomSource:
     footprint_max: np.ndarray
     cad_ids: tuple[str, ...]
     R_level: np.ndarray = field(default_factory=lambda: np.eye(3))
+    cad_corners: tuple[np.ndarray, ...] = ()
 
     @classmethod
     def from_site(cls, name: str, bundle: str, site: Site) -> "RoomSource":
@@ -68,8 +84,10 @@ class RoomSource:
         xy = (site.raw.points.astype(np.float64) @ R_level.T)[:, :2]
         if len(xy) == 0:
             raise ConfigError(f"room bundle {bundle!r} has no raw points: no footprint to place")
-        cad = sorted(n.id for n in site.graph.nodes if n.source == "cad")
-        return cls(name, bundle, xy.min(axis=0), xy.max(axis=0), tuple(cad), R_level)
+        cad = sorted((n for n in site.graph.nodes if n.source == "cad"), key=lambda n: n.id)
+        signs = np.array([[i, j, k] for i in (-0.5, 0.5) for j in (-0.5, 0.5) for k in (-0.5, 0.5)])
+        corners = tuple(((n.box_center + (signs * n.box_extent) @ n.box_R.T) @ R_level.T)[:, :2] for n in cad)
+        return cls(name, bundle, xy.min(axis=0), xy.max(axis=0), tuple(n.id for n in cad), R_level, corners)
 
     @property
     def T_level(self) -> np.ndarray:
@@ -134,6 +152,37 @@ def draw_room(source: RoomSource, rng: np.random.Generator, drop_prob: float) ->
     return turns, [nid for nid, u in zip(source.cad_ids, draws) if u < drop_prob]
 
 
+def draw_moves(source: RoomSource, kept: list[str], rng: np.random.Generator,
+               config: LayoutConfig) -> dict[str, list[list[float]]]:
+    """The moves of one copy's kept CAD objects (`kept`, in the order of `source.cad_ids`), drawn from `rng`: each
+    with probability config.move_prob, a turn about the vertical through its box centre and a horizontal shift, drawn
+    again until its box's corners stay inside the footprint (at most MOVE_TRIES draws, else it stays). Returns
+    {node id: 4x4 room-frame transform} (`RoomEntry.move_objects`)."""
+    if config.move_prob <= 0 or not kept:
+        return {}
+    if len(source.cad_corners) != len(source.cad_ids):
+        raise ConfigError(f"room source {source.name!r} gives no object boxes to move")
+    corners = dict(zip(source.cad_ids, source.cad_corners))
+    moves = {}
+    for node_id in kept:
+        if rng.random() >= config.move_prob:
+            continue
+        xy = corners[node_id]
+        centre = (xy.min(axis=0) + xy.max(axis=0)) / 2.0
+        for _ in range(MOVE_TRIES):
+            yaw = np.radians(rng.uniform(-config.move_max_deg, config.move_max_deg))
+            reach, heading = config.move_max_m * np.sqrt(rng.random()), rng.uniform(0.0, 2.0 * np.pi)
+            shift = reach * np.array([np.cos(heading), np.sin(heading)])  # uniform over the disc
+            R = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+            moved = (xy - centre) @ R.T + centre + shift
+            if np.all(moved >= source.footprint_min) and np.all(moved <= source.footprint_max):
+                M = np.eye(4)  # levelled room frame: about the vertical through the box centre, then shifted
+                M[:2, :2], M[:2, 3] = R, centre + shift - R @ centre
+                moves[node_id] = (source.T_level.T @ M @ source.T_level).tolist()
+                break
+    return moves
+
+
 def grid_corners(sizes: list[np.ndarray], cols: int, gap_m: float) -> list[np.ndarray]:
     """(2,) min corner of each turned footprint of `sizes` ((2,) each), row by row, `cols` per row."""
     corners: list[np.ndarray] = []
@@ -156,9 +205,12 @@ def generate_layout(sources: list[RoomSource], config: LayoutConfig) -> Layout:
     cols, _ = grid_shape(config.rooms)
     picked = [sources[k % len(sources)] for k in range(config.rooms)]
     draws = [draw_room(s, rng, config.drop_prob) for s in picked]
+    # after every room's turn and drops: the same seed turns and drops the same whatever move_prob
+    moves = [draw_moves(s, [i for i in s.cad_ids if i not in dropped], rng, config)
+             for s, (_, dropped) in zip(picked, draws)]
     sizes = [turned_size(s, turns) for s, (turns, _) in zip(picked, draws)]
     corners = grid_corners(sizes, cols, config.gap_m)
     rooms = [RoomEntry(name=f"r{k:03d}", bundle=s.bundle, T_building_room=place_room(s, turns, corner).tolist(),
-                       drop_objects=dropped)
-             for k, (s, (turns, dropped), corner) in enumerate(zip(picked, draws, corners))]
+                       drop_objects=dropped, move_objects=moved)
+             for k, (s, (turns, dropped), moved, corner) in enumerate(zip(picked, draws, moves, corners))]
     return Layout(site_id=config.site_id, rooms=rooms)
