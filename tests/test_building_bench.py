@@ -133,6 +133,14 @@ def test_layout_cli_writes_a_layout_compose_reads(scene0470_site_dir: Path, tmp_
     assert out.read_text() == first
     with pytest.raises(SystemExit):  # a malformed --room
         main(["site", "layout", "--room", "nonsense", "--rooms", "4", "--site-id", "x", "--out", str(out)])
+    moved = tmp_path / "moved.json"
+    assert main(["site", "layout", "--room", f"scene0470={scene0470_site_dir}", "--rooms", "4", "--seed", "1",
+                 "--move-prob", "1", "--move-max-m", "0.2", "--site-id", "m4", "--out", str(moved)]) == 0
+    report = json.loads(capsys.readouterr().out)
+    with_moves = read_layout(moved)
+    assert report["moved"] == sum(len(r.move_objects) for r in with_moves.rooms) > 0
+    assert [r.drop_objects for r in with_moves.rooms] == [r.drop_objects for r in layout.rooms]  # the same drops
+    assert '"move_objects"' not in first and '"move_objects"' in moved.read_text()
 
 
 # --- building mesh and oracle (real scene0470 mesh) -------------------------------------------------------------
