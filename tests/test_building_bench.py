@@ -134,6 +134,7 @@ def test_layout_cli_writes_a_layout_compose_reads(scene0470_site_dir: Path, tmp_
     with pytest.raises(SystemExit):  # a malformed --room
         main(["site", "layout", "--room", "nonsense", "--rooms", "4", "--site-id", "x", "--out", str(out)])
     moved = tmp_path / "moved.json"
+    capsys.readouterr()
     assert main(["site", "layout", "--room", f"scene0470={scene0470_site_dir}", "--rooms", "4", "--seed", "1",
                  "--move-prob", "1", "--move-max-m", "0.2", "--site-id", "m4", "--out", str(moved)]) == 0
     report = json.loads(capsys.readouterr().out)
