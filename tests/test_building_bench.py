@@ -94,7 +94,8 @@ def test_layout_moves_kept_objects_inside_the_room_and_keeps_the_turns_and_drops
     a, b = generate_layout([source], still), generate_layout([source], moving)
     assert b == generate_layout([source], moving)
     assert all(not r.move_objects for r in a.rooms)
-    assert [(r.T_building_room, r.drop_objects) for r in a.rooms] == [(r.T_building_room, r.drop_objects) for r in b.rooms]
+    turns_and_drops = [[(r.T_building_room, r.drop_objects) for r in x.rooms] for x in (a, b)]
+    assert turns_and_drops[0] == turns_and_drops[1]
     corners = dict(zip(CAD_IDS, source.cad_corners))
     moved = 0
     for r in b.rooms:
@@ -384,7 +385,8 @@ def _chair_move() -> np.ndarray:
 
 
 @pytest.mark.realdata
-def test_a_composed_room_with_a_moved_object_carries_its_node_and_points(scene0470_site_dir: Path, tmp_path: Path) -> None:
+def test_a_composed_room_with_a_moved_object_carries_its_node_and_points(scene0470_site_dir: Path,
+                                                                        tmp_path: Path) -> None:
     """`move_objects`: the moved node's centroid and box and its points in both clouds are carried by the
     transform; the floor where it stood stays; a room keeps as many of the object's points as its copy."""
     from cadreg.site.bundle import Site
@@ -417,8 +419,10 @@ def test_a_composed_room_with_a_moved_object_carries_its_node_and_points(scene04
         RoomEntry(name="x", bundle="r", T_building_room=np.eye(4).tolist(), drop_objects=["cad-4"],
                   move_objects={"cad-4": np.eye(4).tolist()})
     with pytest.raises(Exception, match="rigid"):
-        RoomEntry(name="x", bundle="r", T_building_room=np.eye(4).tolist(), move_objects={"cad-4": (2 * np.eye(4)).tolist()})
-    bad = layout.model_copy(update={"rooms": [layout.rooms[0].model_copy(update={"move_objects": {"cad-99": np.eye(4).tolist()}})]})
+        RoomEntry(name="x", bundle="r", T_building_room=np.eye(4).tolist(),
+                  move_objects={"cad-4": (2 * np.eye(4)).tolist()})
+    unknown = layout.rooms[0].model_copy(update={"move_objects": {"cad-99": np.eye(4).tolist()}})
+    bad = layout.model_copy(update={"rooms": [unknown]})
     with pytest.raises(Exception, match="cad-99"):
         compose_site(bad, tmp_path)
 

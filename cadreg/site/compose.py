@@ -12,12 +12,12 @@ map and raw points and graph nodes are moved into the building frame; node ids b
 removes objects of that room: their node, and their points in both clouds (inside the node's box grown by
 DROP_MARGIN_M, of the node's class: the floor and wall under and behind it stay), as when a chair is missing from
 one of two identical rooms. `move_objects` ({node id: 4x4 rigid transform, room frame}) moves objects of that room
-the same way: the node and those points are carried by the transform (a chair pushed aside, a table turned), and
-the floor and wall they stood on and against stay where they were. The graph's edges are rebuilt over all nodes with the rooms' δ (rooms touching each
-other get edges across). Instance ids are offset per room so that they stay distinct. Each room is a region of the
-site (`regions.py`): its name, box, nodes and its rows of the two clouds (rooms are written one after the other).
-The building's distance field and each region's grid of points (`RegionGrids`) are built here and stored. The output
-is one ordinary bundle (cadreg/site/bundle.py), loaded and served as any other.
+the same way: the node and those points are carried by the transform (a chair pushed aside, a table turned), and the
+floor and wall they stood on and against stay where they were. The graph's edges are rebuilt over all nodes with the
+rooms' δ (rooms touching each other get edges across). Instance ids are offset per room so that they stay distinct.
+Each room is a region of the site (`regions.py`): its name, box, nodes and its rows of the two clouds (rooms are
+written one after the other). The building's distance field and each region's grid of points (`RegionGrids`) are
+built here and stored. The output is one ordinary bundle (cadreg/site/bundle.py), loaded and served as any other.
 """
 
 from __future__ import annotations
@@ -214,7 +214,8 @@ def _building_up(rooms: list["_Room"]) -> np.ndarray:
     return up
 
 
-def copy_changes(entry: RoomEntry, nodes: list[ObjectNode]) -> tuple[list[ObjectNode], list[tuple[ObjectNode, np.ndarray]]]:
+def copy_changes(entry: RoomEntry,
+                 nodes: list[ObjectNode]) -> tuple[list[ObjectNode], list[tuple[ObjectNode, np.ndarray]]]:
     """The room's nodes its copy `entry` drops, and those it moves with their transforms; ConfigError naming an id
     the room's graph (`nodes`) does not have."""
     by_id = {n.id: n for n in nodes}
@@ -228,7 +229,8 @@ def copy_changes(entry: RoomEntry, nodes: list[ObjectNode]) -> tuple[list[Object
 
 def compose_site(layout: Layout, root: str | Path) -> Site:
     """The building site of `layout` (bundle paths relative to `root`). Rooms must share their classes and label
-    maps (the same label set and class names): ConfigError otherwise, and for a dropped id a room does not have."""
+    maps (the same label set and class names): ConfigError otherwise, and for a dropped or moved id a room does not
+    have."""
     root = Path(root)
     rooms = [_Room(e, Site.load(root / e.bundle), np.asarray(e.T_building_room, dtype=np.float64)) for e in layout.rooms]
     first = rooms[0].site
