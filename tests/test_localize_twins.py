@@ -74,24 +74,26 @@ def test_a_copy_with_moved_furniture_is_placed_by_the_objects_that_stayed() -> N
 def test_copies_of_a_view_are_not_told_apart_by_an_object_at_the_match_radius() -> None:
     """A partly seen whiteboard's centroid lies about match_radius_m (0.6 m) from its node: copies of one view a
     few millimetres apart put it 0.598 m from the node in one room and 0.601 m in the other. The copy places it as
-    the answer does (within OBJECT_SLACK_M farther) and is kept; a room that lacks the object, or has it 0.75 m off,
+    the answer does (within OBJECT_SLACK_M farther) and is kept; a room that lacks the object, or has it 0.699 m off,
     does not."""
     from types import SimpleNamespace
 
     from cadreg.localize.building_views import OBJECT_SLACK_M, BuildingViews
 
     graph = MapGraph(["a/wb", "b/wb", "c/wb"], np.array([0, 0, 0]),
-                     np.array([[0.598, 0.0, 1.0], [10.601, 0.0, 1.0], [20.75, 0.0, 1.0]]))
+                     np.array([[0.598, 0.0, 1.0], [10.601, 0.0, 1.0], [20.699, 0.0, 1.0]]))
     views = BuildingViews()
     views.config, views.graph = LocalizeConfig(), graph
     scan = SimpleNamespace(clusters=[SimpleNamespace(cls=0, centroid=np.zeros(3))], view_shares=np.array([0.5]))
     T_a, T_b, T_c, T_none = (np.eye(4) for _ in range(4))
     T_a[:3, 3], T_b[:3, 3], T_c[:3, 3], T_none[:3, 3] = [0, 0, 1.0], [10.0, 0, 1.0], [20.0, 0, 1.0], [30.0, 0, 1.0]
     distances = views._object_distances(scan, np.array([T_a, T_b, T_c, T_none]))[:, 0]
-    assert distances[:3] == pytest.approx([0.598, 0.601, 0.75]) and np.isinf(distances[3])
+    assert distances[:3] == pytest.approx([0.598, 0.601, 0.699]) and np.isinf(distances[3])
     assert views._objects_placed(scan, np.array([T_a, T_b]))[:, 0].tolist() == [True, False]  # the radius alone
     assert views._shows_objects(scan, T_a, [T_b, T_c, T_none]).tolist() == [True, False, False]
-    assert 0.598 + OBJECT_SLACK_M < 0.75
+    assert 0.598 + OBJECT_SLACK_M < 0.699
+    # an object the reference pose does not place is credited within the radius only
+    assert views._near_as(np.array([[0.65], [0.59]]), np.array([np.inf])).ravel().tolist() == [False, True]
 
 
 def test_a_room_with_too_few_objects_has_no_copies() -> None:

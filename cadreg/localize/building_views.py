@@ -380,20 +380,21 @@ class BuildingViews:
     def _near_as(self, distances: np.ndarray, reference: np.ndarray) -> np.ndarray:
         """(p, objects) bool: whether poses that put the frame's labelled objects `distances` ((p, objects),
         `_object_distances`) from their nodes place each as a pose at `reference` ((objects,)) does: within
-        match_radius_m, or at most OBJECT_SLACK_M farther than that pose."""
-        return distances < np.maximum(self.config.match.match_radius_m, reference + OBJECT_SLACK_M)
+        match_radius_m, or, for an object that pose places, at most OBJECT_SLACK_M farther than it."""
+        radius = self.config.match.match_radius_m
+        return distances < np.where(reference < radius, np.maximum(radius, reference + OBJECT_SLACK_M), radius)
 
     def _object_distances(self, scan: Scan, poses: np.ndarray) -> np.ndarray:
         """(p, objects) float: how far each pose (poses (p, 4, 4) or (4, 4)) puts each of the frame's labelled
         objects' centroids (`Scan.clusters`) from the nearest map node of its class; inf beyond match_radius_m
-        plus twice OBJECT_SLACK_M (what no rule here tells apart)."""
+        plus OBJECT_SLACK_M (what no rule here tells apart, `_near_as`)."""
         P = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
         distances = np.full((len(P), len(scan.clusters)), np.inf)
         if not len(scan.clusters):
             return distances
         centroids = np.array([c.centroid for c in scan.clusters])
         xyz = centroids @ P[:, :3, :3].transpose(0, 2, 1) + P[:, None, :3, 3]  # (p, objects, 3), as transform_points
-        reach = self.config.match.match_radius_m + 2 * OBJECT_SLACK_M
+        reach = self.config.match.match_radius_m + OBJECT_SLACK_M
         for k, c in enumerate(scan.clusters):
             node = self.graph.nearest_of_class(xyz[:, k], c.cls, reach)
             found = node >= 0
