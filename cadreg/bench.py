@@ -27,7 +27,9 @@ that repeat it (the oracle of cadreg/render/building.py). With it the summary sp
 no other room repeats: success @5cm/5° is what counts) and `repeated` (the right answer is `ambiguous` with the
 truth among the reported poses — the answer and its `hypotheses`, by pose; `ok` in the right room is a lucky
 guess, `ok` elsewhere is wrong; `ok_twin_room` counts the wrong ones that are the same view in a room that repeats
-it).
+it). Views taken in a building's corridors are neither: a plain hallway looks the same all along it, at either end
+and in every corridor of its size, so they get their own `corridor` figures, where what counts is that no `ok`
+answer is wrong (and how often the answer is `ambiguous` with the truth among the reported poses).
 
 This module is a runner: it owns timing. It does no file I/O and prints nothing; the CLI does.
 """
@@ -76,6 +78,7 @@ class FrameOutcome:
     confidence: float = float("nan")  # the method's own confidence in its answer, [0, 1]
     truth_in_hypotheses: bool = False  # a reported pose (the answer or a hypothesis) within 5 cm / 5° of the truth
     repeated: bool | None = None  # another room repeats the view (views.json); None = not known
+    corridor: bool = False  # the view was taken in one of the building's corridors (views.json)
     twin_answer: bool = False  # the answer is the same view in a room that repeats it (within 5 cm / 5° of it)
     T_answer: np.ndarray | None = field(default=None, repr=False)  # (4, 4) the answered T_map_camera, or None
 
@@ -88,6 +91,7 @@ class ViewTruth:
     room: str
     repeated_in: tuple[str, ...] = ()
     T_twins: tuple[np.ndarray, ...] = ()
+    corridor: bool = False
 
     @property
     def repeated(self) -> bool:
@@ -104,7 +108,9 @@ def views_from_doc(doc: dict) -> dict[int, ViewTruth]:
         for v in doc["views"]:
             T_room_camera = np.asarray(v["T_room_camera"], dtype=np.float64)
             twins = tuple(str(name) for name in v["repeated_in"])
-            out[int(v["index"])] = ViewTruth(str(v["room"]), twins, tuple(T_room[t] @ T_room_camera for t in twins))
+            corridor = bool(doc["rooms"][str(v["room"])].get("corridor", False))
+            out[int(v["index"])] = ViewTruth(str(v["room"]), twins, tuple(T_room[t] @ T_room_camera for t in twins),
+                                             corridor)
         return out
     except (KeyError, TypeError, ValueError) as exc:
         raise InvalidArgument(f"not a views.json of `cadreg render --layout`: {exc!r}") from None
@@ -270,14 +276,17 @@ def building_summary(outcomes: list[FrameOutcome], s5: np.ndarray) -> dict:
     repeated : frames, ambiguous (share answered `ambiguous`), ambiguous_with_truth (share answered `ambiguous`
         with a reported pose within 5 cm / 5° of the truth), ok_right_room (ok answers within 5 cm / 5°), ok_wrong
         (the other ok answers), ok_twin_room (of those, the same view in a room that repeats it).
+    corridor : frames (views taken in a corridor, in neither bucket above), ok, ok_wrong, ambiguous,
+        ambiguous_with_truth.
     A bucket without frames has frames 0 and null shares.
     """
     ok = np.array([o.status == Status.OK.value for o in outcomes], dtype=bool)
     amb = np.array([o.status == Status.AMBIGUOUS.value for o in outcomes], dtype=bool)
     truth = np.array([o.truth_in_hypotheses for o in outcomes], dtype=bool)
     twin = np.array([o.twin_answer for o in outcomes], dtype=bool)
-    uniq = np.array([o.repeated is False for o in outcomes], dtype=bool)
-    rep = np.array([o.repeated is True for o in outcomes], dtype=bool)
+    hall = np.array([o.corridor for o in outcomes], dtype=bool)
+    uniq = np.array([o.repeated is False for o in outcomes], dtype=bool) & ~hall
+    rep = np.array([o.repeated is True for o in outcomes], dtype=bool) & ~hall
 
     def share(x: np.ndarray, sel: np.ndarray) -> float | None:
         return float(x[sel].mean()) if sel.any() else None
@@ -289,6 +298,8 @@ def building_summary(outcomes: list[FrameOutcome], s5: np.ndarray) -> dict:
                      "ambiguous_with_truth": share(amb & truth, rep),
                      "ok_right_room": int((rep & ok & s5).sum()), "ok_wrong": int((rep & ok & ~s5).sum()),
                      "ok_twin_room": int((rep & ok & ~s5 & twin).sum())},
+        "corridor": {"frames": int(hall.sum()), "ok": int((hall & ok).sum()), "ok_wrong": int((hall & ok & ~s5).sum()),
+                     "ambiguous": share(amb, hall), "ambiguous_with_truth": share(amb & truth, hall)},
     }
 
 
@@ -302,7 +313,7 @@ def per_frame_record(o: FrameOutcome) -> dict:
     return {"index": o.index, "status": o.status, "translation_m": num(o.translation_m, 4),
             "rotation_deg": num(o.rotation_deg, 3), "ms": num(o.total_ms, 1), "confidence": num(o.confidence, 3),
             "truth_in_hypotheses": o.truth_in_hypotheses, "repeated": o.repeated, "gt_overlap": num(o.gt_overlap, 3),
-            "objects_in_view": o.objects_in_view}
+            "objects_in_view": o.objects_in_view} | ({"corridor": True} if o.corridor else {})
 
 
 def summarize(outcomes: list[FrameOutcome]) -> dict:
@@ -413,7 +424,7 @@ def run_bench(site, frames, methods: list[str], *, localizer: Localizer | None =
                 o.objects_in_view, o.gt_overlap, o.gt_fit_1cm = n_obj, overlap, gt_fit
                 if views is not None and int(i) in views:
                     view = views[int(i)]
-                    o.repeated = view.repeated
+                    o.repeated, o.corridor = view.repeated, view.corridor
                     o.twin_answer = o.T_answer is not None and any(within_5cm_5deg(o.T_answer, T) for T in view.T_twins)
                 outcomes[m].append(o)
         if progress:
@@ -467,6 +478,11 @@ def format_table(report: dict) -> str:
                          f"ambiguous {f(r['ambiguous'], 100)}%, ambiguous with the truth among hypotheses "
                          f"{f(r['ambiguous_with_truth'], 100)}%, ok right room {r['ok_right_room']}, ok wrong "
                          f"{r['ok_wrong']} (same view in a twin room {r['ok_twin_room']})")
+            c = s["corridor"]
+            if c["frames"]:
+                lines.append(f"  {name} corridor views: {c['frames']}, ok {c['ok']}, ok wrong {c['ok_wrong']}, "
+                             f"ambiguous {f(c['ambiguous'], 100)}%, ambiguous with the truth among hypotheses "
+                             f"{f(c['ambiguous_with_truth'], 100)}%")
         if s.get("gt_fits_worse"):
             lines.append(f"  {name}: {s['gt_fits_worse']} failed frames fit the map better at the estimate than "
                          f"at their ground truth (1 cm inliers)")

@@ -33,11 +33,13 @@ def _room_arg(text: str) -> tuple[str, Path]:
 
 
 def _layout_json(doc: dict) -> str:
-    """The layout as JSON with one room per line (diffable, and readable at 100 rooms); a room that moves no object
-    has no "move_objects"."""
+    """The layout as JSON with one room (and one corridor) per line (diffable, and readable at 100 rooms); a room
+    that moves no object has no "move_objects", a layout without corridors no "corridors"."""
     rooms = ",\n  ".join(json.dumps({k: v for k, v in r.items() if k != "move_objects" or v}) for r in doc["rooms"])
-    head = json.dumps({k: v for k, v in doc.items() if k != "rooms"})[:-1]
-    return f"{head}, \"rooms\": [\n  {rooms}\n]}}\n"
+    head = json.dumps({k: v for k, v in doc.items() if k not in ("rooms", "corridors")})[:-1]
+    corridors = ",\n  ".join(json.dumps(c) for c in doc.get("corridors", []))
+    tail = f", \"corridors\": [\n  {corridors}\n]" if corridors else ""
+    return f"{head}, \"rooms\": [\n  {rooms}\n]{tail}}}\n"
 
 
 def _layout(args: argparse.Namespace) -> int:
@@ -47,7 +49,7 @@ def _layout(args: argparse.Namespace) -> int:
     try:
         config = LayoutConfig(site_id=args.site_id, rooms=args.rooms, gap_m=args.gap_m, drop_prob=args.drop_prob,
                               move_prob=args.move_prob, move_max_m=args.move_max_m, move_max_deg=args.move_max_deg,
-                              seed=args.seed)
+                              corridor_m=args.corridor_m, corridor_height_m=args.corridor_height_m, seed=args.seed)
     except ValueError as exc:
         raise ConfigError(str(exc)) from exc
     names = [name for name, _ in args.room]
@@ -66,7 +68,7 @@ def _layout(args: argparse.Namespace) -> int:
     cad = sum(len(sources[k % len(sources)].cad_ids) for k in range(config.rooms))
     print(json.dumps({"site_id": layout.site_id, "rooms": len(layout.rooms), "grid": [cols, rows],
                       "sources": {s.name: s.bundle for s in sources}, "cad_objects": cad, "dropped": dropped,
-                      "moved": moved, "seed": config.seed, "out": str(out)}))
+                      "moved": moved, "corridors": len(layout.corridors), "seed": config.seed, "out": str(out)}))
     return 0
 
 
@@ -75,7 +77,8 @@ def register_site_compose(site_sub: argparse._SubParsersAction) -> None:
         "compose", help="compose a multi-room site from room bundles placed by a layout",
         description="LAYOUT.json: {\"site_id\", \"rooms\": [{\"name\", \"bundle\" (relative to the layout), "
                     "\"T_building_room\" (4x4), \"drop_objects\" (node ids, optional), \"move_objects\" ({node id: "
-                    "4x4 room-frame transform}, optional)}]}. Writes one bundle.",
+                    "4x4 room-frame transform}, optional)}], \"corridors\" (optional): [{\"name\", "
+                    "\"T_building_corridor\" (4x4), \"length_m\", \"width_m\", \"height_m\"}]}. Writes one bundle.",
     )
     c.add_argument("layout", type=Path, help="layout JSON file")
     c.add_argument("--out", required=True, type=Path, help="bundle directory to write")
@@ -85,7 +88,8 @@ def register_site_compose(site_sub: argparse._SubParsersAction) -> None:
         description="Rooms r000, r001, ... on a near-square grid, each a copy of a --room bundle (cycled), turned "
                     "about z by a random multiple of 90 degrees about its footprint centre, footprints --gap-m "
                     "apart, each CAD object dropped with probability --drop-prob, each one kept moved (turned and "
-                    "shifted inside the room) with probability --move-prob. Deterministic per --seed.",
+                    "shifted inside the room) with probability --move-prob; with --corridor-m, plain corridors "
+                    "between pairs of rows. Deterministic per --seed.",
     )
     g.add_argument("--room", action="append", required=True, type=_room_arg, metavar="NAME=BUNDLE_DIR",
                    help="a room bundle to copy (repeatable)")
@@ -96,6 +100,9 @@ def register_site_compose(site_sub: argparse._SubParsersAction) -> None:
                    help="probability of moving each CAD object a copy keeps (default 0: none)")
     g.add_argument("--move-max-m", type=float, default=0.5, help="largest shift of a moved object, metres")
     g.add_argument("--move-max-deg", type=float, default=45.0, help="largest turn of a moved object, degrees")
+    g.add_argument("--corridor-m", type=float, default=0.0,
+                   help="clear width of a corridor between each pair of rows, metres (default 0: no corridors)")
+    g.add_argument("--corridor-height-m", type=float, default=2.5, help="height of the corridors' walls, metres")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--site-id", required=True, help="site id of the building")
     g.add_argument("--out", required=True, type=Path, help="layout JSON to write (bundle paths relative to it)")

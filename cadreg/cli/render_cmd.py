@@ -188,12 +188,15 @@ def _render_layout(args: argparse.Namespace, config) -> int:
                                       noise=None if args.no_noise else NoiseConfig(), oracle=oracle, progress=progress)
     doc = {"site_id": layout.site_id, "layout": str(args.layout.resolve()), "seed": args.seed,
            "oracle": oracle.model_dump(),
-           "rooms": {r.name: {"bundle": r.bundle, "T_building_room": r.T_building_room.tolist()} for r in rooms},
+           "rooms": {r.name: {"bundle": r.bundle, "T_building_room": r.T_building_room.tolist()}
+                     | ({"corridor": True} if r.corridor else {}) for r in rooms},
            "views": [v.to_dict() for v in views]}
     (args.out / "views.json").write_text(json.dumps(doc))
     repeated = sum(bool(v.repeated_in) for v in views)
-    print(json.dumps({"frames": len(views), "out": str(args.out), "rooms": len(rooms),
-                      "rooms_seen": len({v.room for v in views}), "repeated": repeated, "unique": len(views) - repeated,
+    corridor = sum(v.corridor for v in views)
+    print(json.dumps({"frames": len(views), "out": str(args.out), "rooms": sum(not r.corridor for r in rooms),
+                      "corridors": sum(r.corridor for r in rooms), "rooms_seen": len({v.room for v in views}),
+                      "repeated": repeated, "unique": len(views) - repeated, "corridor_views": corridor,
                       "mesh": sorted(set(desc.values())), "elapsed_s": round(time.perf_counter() - t0, 1)}))
     return 0
 

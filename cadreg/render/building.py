@@ -19,9 +19,16 @@ different neighbour over the wall takes several per cent of the pixels. Every ot
 cast (no pruning): the cost is (rooms of the bundle − 1) casts of 19 200 rays per view, depth and labels only
 (~6–9 ms each on this machine at 10 rooms).
 
+**Corridors.** A layout's corridors (`compose.CorridorEntry`) join the building mesh (`corridor_mesh`, the panels
+compose samples into the map) and the places views are drawn in: a view's place is drawn uniformly among rooms and
+corridors, and a corridor's view need not see an object. The oracle compares a corridor's view with the same
+corridor-relative view in every other corridor of its size; what a bench makes of corridor views is its own
+figure (`cadreg.bench`: a plain hallway shows nothing that places a view in it).
+
     OracleConfig                              resolution, depth tolerance, agreement threshold
     room_copy_mesh(mesh, dropped_nodes)       a room's mesh without its dropped objects (room frame)
-    BuildingRoom, building_rooms(layout, ...) the layout's rooms with their meshes and transforms
+    BuildingRoom, building_rooms(layout, ...) the layout's rooms (and corridors) with their meshes and transforms
+    corridor_mesh(entry)                      a corridor's mesh (its frame)
     building_mesh(rooms)                      the whole building's LabelledMesh (building frame)
     RepeatOracle                              agreement / repeated_in of a room-relative view
     render_building_views(rooms, out_dir, n)  a recorded-frames folder of views + their BuildingView records
@@ -44,12 +51,18 @@ from ..errors import ConfigError, InvalidFrame
 from ..geometry import transform_points
 from ..io.frames import FramesWriter
 from ..labels import nyu40_label_map
-from ..site.compose import Layout, copy_changes, inside_boxes
+from ..site.compose import CorridorEntry, Layout, copy_changes, inside_boxes
+from ..site.corridor import corridor_panels, panel_grid
 from ..site.graph import ObjectNode
 from .mesh import LabelledMesh
 from .poses import PoseSampler
 from .raycast import MeshRenderer, camera_rig, pixel_rays
 from .sequence import count_visible_objects
+
+
+# A corridor's mesh is a grid of cells this size (metres): flat panels need no finer, and the pose sampler reads
+# the floor's height from its floor vertices.
+CORRIDOR_MESH_STEP_M = 0.25
 
 
 class OracleConfig(BaseModel):
@@ -117,22 +130,54 @@ def room_copy_mesh(mesh: LabelledMesh, dropped: list[ObjectNode],
 @dataclass
 class BuildingRoom:
     """One room of the building: name, bundle (as in the layout), T_building_room (4, 4) room -> building,
-    mesh : its copy's LabelledMesh in the room frame (dropped objects removed, moved ones moved)."""
+    mesh : its copy's LabelledMesh in the room frame (dropped objects removed, moved ones moved). A corridor of the
+    layout is one too (corridor True): its mesh is `corridor_mesh`'s in its own frame, its bundle names its size
+    (corridors of one size are copies of each other, as rooms of one bundle are)."""
 
     name: str
     bundle: str
     T_building_room: np.ndarray
     mesh: LabelledMesh
+    corridor: bool = False
+
+
+def corridor_mesh(entry: CorridorEntry) -> LabelledMesh:
+    """The corridor's panels (cadreg/site/corridor.py) as a labelled mesh, corridor frame: each a grid of
+    CORRIDOR_MESH_STEP_M cells, its own vertices (a corner's label is its panel's), two triangles a cell."""
+    vertices, faces, colors, labels = [], [], [], []
+    count = 0
+    for panel in corridor_panels(entry.length_m, entry.width_m, entry.height_m):
+        grid, nu, nv = panel_grid(panel, CORRIDOR_MESH_STEP_M)
+        index = count + np.arange(nu * nv).reshape(nu, nv)
+        a, b, c, d = index[:-1, :-1], index[1:, :-1], index[1:, 1:], index[:-1, 1:]
+        # two triangles a cell; their winding does not matter (the ray caster hits either side)
+        faces.append(np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)]))
+        vertices.append(grid.reshape(-1, 3))
+        colors.append(np.tile(np.array(panel.rgb, dtype=np.uint8), (nu * nv, 1)))
+        labels.append(np.full(nu * nv, panel.label, dtype=np.uint16))
+        count += nu * nv
+    return LabelledMesh(np.concatenate(vertices), np.concatenate(faces), np.concatenate(colors),
+                        np.concatenate(labels), "nyu40", np.full(count, -1, dtype=np.int32))
+
+
+def corridor_bundle(entry: CorridorEntry) -> str:
+    """What stands for a corridor's bundle: its size (the oracle compares a view with its copies in the corridors of
+    the same size)."""
+    return f"corridor {entry.length_m:.3f} x {entry.width_m:.3f} x {entry.height_m:.3f} m"
 
 
 def building_rooms(layout: Layout, meshes: dict[str, LabelledMesh],
                    nodes: dict[str, list[ObjectNode]]) -> list[BuildingRoom]:
-    """The rooms of `layout`; `meshes` and `nodes` give, per bundle string of the layout, the room's labelled mesh
-    and its graph nodes (room frame). ConfigError for a dropped or moved id the bundle's graph does not have."""
+    """The rooms of `layout`, then its corridors; `meshes` and `nodes` give, per bundle string of the layout, the
+    room's labelled mesh and its graph nodes (room frame). ConfigError for a dropped or moved id the bundle's graph
+    does not have."""
     rooms = []
     for entry in layout.rooms:
         mesh = room_copy_mesh(meshes[entry.bundle], *copy_changes(entry, nodes[entry.bundle]))
         rooms.append(BuildingRoom(entry.name, entry.bundle, np.asarray(entry.T_building_room, dtype=np.float64), mesh))
+    for c in layout.corridors:
+        rooms.append(BuildingRoom(c.name, corridor_bundle(c), np.asarray(c.T_building_corridor, dtype=np.float64),
+                                  corridor_mesh(c), corridor=True))
     return rooms
 
 
@@ -247,7 +292,8 @@ class RepeatOracle:
 @dataclass
 class BuildingView:
     """One rendered view: index in the frames folder, room name, T_room_camera and T_building_camera (4, 4,
-    colour camera -> room / building), repeated_in (rooms that repeat it), agreement (by room of the same bundle)."""
+    colour camera -> room / building), repeated_in (rooms that repeat it), agreement (by room of the same bundle),
+    corridor (the view was taken in a corridor: `room` names it, T_room_camera is in its frame)."""
 
     index: int
     room: str
@@ -255,10 +301,11 @@ class BuildingView:
     T_building_camera: np.ndarray
     repeated_in: list[str]
     agreement: dict[str, float]
+    corridor: bool = False
 
     def to_dict(self) -> dict:
         """The views.json record."""
-        return {"index": self.index, "room": self.room, "repeated": bool(self.repeated_in),
+        return {"index": self.index, "room": self.room, "corridor": self.corridor, "repeated": bool(self.repeated_in),
                 "repeated_in": list(self.repeated_in), "T_room_camera": self.T_room_camera.tolist(),
                 "agreement": {k: round(v, 4) for k, v in self.agreement.items()}}
 
@@ -314,7 +361,8 @@ def render_building_views(
         writer.write(i, frame, T_building_camera)
         agreement = repeat.agreements(room, T_room_camera)
         repeated = [name for name, a in agreement.items() if a >= oracle.min_agreement]
-        out.append(BuildingView(i, rooms[room].name, T_room_camera, T_building_camera, repeated, agreement))
+        out.append(BuildingView(i, rooms[room].name, T_room_camera, T_building_camera, repeated, agreement,
+                                rooms[room].corridor))
         if progress is not None:
             progress(len(out), n)
     return out
@@ -325,6 +373,7 @@ def _draw_view(room: BuildingRoom, sampler: PoseSampler, renderer: MeshRenderer,
     """(T_room_camera, Frame) of the first sampled pose in `room` whose building view passes the config's
     valid-depth and visible-object thresholds; ConfigError after `max_attempts_per_frame` failures."""
     depth_intr, color_intr, T_color_depth = camera_rig(config)  # cheap: a few dataclasses
+    min_objects = 0 if room.corridor else config.min_visible_objects  # a corridor holds none
     min_z = noise.min_depth_m if noise is not None else 0.0
     max_z = noise.max_depth_m if noise is not None else np.inf
     for _ in range(config.max_attempts_per_frame):
@@ -335,7 +384,7 @@ def _draw_view(room: BuildingRoom, sampler: PoseSampler, renderer: MeshRenderer,
         dview = renderer.cast(depth_intr, T_building_camera @ T_color_depth, with_color=True)
         z = dview.depth_m
         if (float(np.mean(np.isfinite(z) & (z >= min_z) & (z <= max_z))) < config.min_valid_fraction
-                or count_visible_objects(dview, config.min_object_fraction) < config.min_visible_objects):
+                or count_visible_objects(dview, config.min_object_fraction) < min_objects):
             continue
         try:
             frame, _, _ = renderer.render_frame(T_building_camera, depth_intr, color_intr, T_color_depth, rng=rng,

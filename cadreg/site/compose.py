@@ -16,13 +16,17 @@ the same way: the node and those points are carried by the transform (a chair pu
 floor and wall they stood on and against stay where they were. The graph's edges are rebuilt over all nodes with the
 rooms' δ (rooms touching each other get edges across). Instance ids are offset per room so that they stay distinct.
 Each room is a region of the site (`regions.py`): its name, box, nodes and its rows of the two clouds (rooms are
-written one after the other). The building's distance field and each region's grid of points (`RegionGrids`) are
-built here and stored. The output is one ordinary bundle (cadreg/site/bundle.py), loaded and served as any other.
+written one after the other). A layout may also list `corridors` (`CorridorEntry`: a name, `T_building_corridor`,
+`length_m`, `width_m`, `height_m`): plain hallways made by `corridor.py`, their points written into both clouds after
+the rooms', each cut into regions <name>.0, <name>.1, ... of at most CORRIDOR_SEGMENT_M, without objects. The
+building's up is stated (the rooms'). The building's distance field and each region's grid of points (`RegionGrids`)
+are built here and stored. The output is one ordinary bundle (cadreg/site/bundle.py), loaded and served as any other.
 """
 
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -38,6 +42,7 @@ from ..localize.regions import region_grids
 from ..localize.score import building_field
 from ..pointset import PointSet
 from .bundle import Site
+from .corridor import corridor_cloud
 from .graph import ObjectNode, build_graph
 from .regions import region_from_points, to_manifest
 
@@ -45,6 +50,10 @@ from .regions import region_from_points, to_manifest
 DROP_MARGIN_M = 0.03
 # Instance ids of room k are offset by k times this (a room holds far fewer objects).
 INSTANCE_STRIDE = 1_000_000
+# A corridor is cut into regions of at most this length (metres): a region's map holds its box and a halo around it.
+CORRIDOR_SEGMENT_M = 6.0
+# A corridor's points are this far apart when the rooms' bundles do not state their sampling (enhance's default).
+CORRIDOR_SPACING_M = 0.015
 
 
 class RoomEntry(BaseModel):
@@ -96,11 +105,31 @@ def _checked_rigid(value: list[list[float]]) -> list[list[float]]:
     return value
 
 
+class CorridorEntry(BaseModel):
+    """A plain corridor (cadreg/site/corridor.py): its frame has x along it from 0 to length_m, y across it (±width_m
+    / 2), z up from its floor to the top of its walls (height_m); `T_building_corridor` places that frame."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9._-]+$",
+                      description="prefix of the corridor's region ids (<name>.<k>, one per CORRIDOR_SEGMENT_M)")
+    T_building_corridor: list[list[float]] = Field(description="4x4 corridor -> building transform, metres")
+    length_m: float = Field(gt=0, le=1000, description="length along the corridor's x, metres")
+    width_m: float = Field(gt=0, le=50, description="clear width between its side walls, metres")
+    height_m: float = Field(2.5, gt=0, le=20, description="height of its walls above its floor, metres")
+
+    @field_validator("T_building_corridor")
+    @classmethod
+    def _rigid(cls, value: list[list[float]]) -> list[list[float]]:
+        return _checked_rigid(value)
+
+
 class Layout(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     site_id: str = Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
     rooms: list[RoomEntry] = Field(min_length=1)
+    corridors: list[CorridorEntry] = Field(default_factory=list)
 
     @field_validator("rooms")
     @classmethod
@@ -109,6 +138,13 @@ class Layout(BaseModel):
         if len(set(names)) != len(names):
             raise ValueError(f"room names must be distinct, got {names}")
         return rooms
+
+    @model_validator(mode="after")
+    def _distinct_places(self) -> "Layout":
+        names = [r.name for r in self.rooms] + [c.name for c in self.corridors]
+        if len(set(names)) != len(names):
+            raise ValueError(f"room and corridor names must be distinct, got {names}")
+        return self
 
 
 def read_layout(path: str | Path) -> Layout:
@@ -227,6 +263,21 @@ def copy_changes(entry: RoomEntry,
     return [by_id[i] for i in entry.drop_objects], [(by_id[i], T) for i, T in entry.moves().items()]
 
 
+def corridor_segments(entry: CorridorEntry, up: np.ndarray, spacing_m: float) -> list[tuple[str, PointSet]]:
+    """(region id, points in the building frame) of each segment of the corridor `entry`: its length cut into equal
+    segments of at most CORRIDOR_SEGMENT_M, named <name>.0, <name>.1, ... (a long corridor as one region would give
+    its region map every room along it). ConfigError when its up is not the building's `up`."""
+    T = np.asarray(entry.T_building_corridor, dtype=np.float64)
+    off = float(np.degrees(np.arccos(np.clip(T[:3, 2] @ up, -1.0, 1.0))))
+    if off > MAX_UP_SPREAD_DEG:
+        raise ConfigError(f"corridor {entry.name!r}: its up (z) lies {off:.0f} degrees from the building's")
+    local = corridor_cloud(entry.length_m, entry.width_m, entry.height_m, spacing_m)
+    n = max(1, math.ceil(entry.length_m / CORRIDOR_SEGMENT_M))
+    segment = np.minimum((local.points[:, 0] / (entry.length_m / n)).astype(np.int64), n - 1)
+    cloud = _moved(local, T, 0)
+    return [(f"{entry.name}.{k}", cloud.take(segment == k)) for k in range(n)]
+
+
 def compose_site(layout: Layout, root: str | Path) -> Site:
     """The building site of `layout` (bundle paths relative to `root`). Rooms must share their classes and label
     maps (the same label set and class names): ConfigError otherwise, and for a dropped or moved id a room does not
@@ -258,17 +309,37 @@ def compose_site(layout: Layout, root: str | Path) -> Site:
                                           floor_m=_floor_height(up, maps[-1], raws[-1])))
         map_at += len(maps[-1])
         raw_at += len(raws[-1])
+    # Corridors: their points in both clouds (a made surface is what the scan and the enhanced map would both hold),
+    # one region per segment, no objects.
+    spacing = float(first.manifest.get("build_config", {}).get("enhance", {}).get("sample_spacing_m",
+                                                                                  CORRIDOR_SPACING_M))
+    for entry in layout.corridors:
+        for region_id, cloud in corridor_segments(entry, up, spacing):
+            maps.append(cloud)
+            raws.append(cloud)
+            regions.append(region_from_points(region_id, [cloud.points], [], (map_at, map_at + len(cloud)),
+                                              (raw_at, raw_at + len(cloud)), floor_m=_floor_height(up, cloud)))
+            map_at += len(cloud)
+            raw_at += len(cloud)
+    ids = [r.id for r in regions]
+    if len(set(ids)) != len(ids):
+        raise ConfigError(f"region ids repeat: {sorted({i for i in ids if ids.count(i) > 1})} (a room named as a "
+                          "corridor's segment <name>.<k>)")
     manifest: dict[str, Any] = {
         key: first.manifest[key] for key in ("build_config",) if key in first.manifest
     }
     manifest["regions"] = to_manifest(regions)
-    if any(r.site.up is not None for r in rooms):
-        manifest["up"] = [float(x) for x in up]
+    # The building states its up, the rooms' (+z for scan meshes that state none): estimated from the map's normals
+    # (`gravity.map_up_axis`), a building's long corridor walls outnumber its floors, and its up came out as the
+    # corridors' cross axis: every frame was searched on its side.
+    manifest["up"] = [float(x) for x in up]
     manifest["inputs"] = {"composed": [{"name": r.entry.name, "bundle": r.entry.bundle, "site_id": r.site.site_id,
                                         "version": r.site.version, "T_building_room": r.entry.T_building_room,
                                         "drop_objects": list(r.entry.drop_objects)}
                                        | ({"move_objects": dict(r.entry.move_objects)} if r.entry.move_objects else {})
                                        for r in rooms]}
+    if layout.corridors:
+        manifest["inputs"]["corridors"] = [c.model_dump() for c in layout.corridors]
     # The building's distance field is built here, room by room, and stored: a worker maps it instead of
     # rebuilding it over the whole building at every start.
     field_grid = building_field([np.concatenate([m.points, r.points]) for m, r in zip(maps, raws)])

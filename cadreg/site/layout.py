@@ -10,6 +10,11 @@ turning:
 - each row's band (the tallest footprint of the row) starts exactly `gap_m` after the band of the row below (y);
   a room lower than its row's band sits at the band's bottom, so its gap to the row above is larger.
 
+With `corridor_m` > 0 the rows pair up about corridors (`compose.CorridorEntry`, cadreg/site/corridor.py): corridor
+c<k> runs along x between rows 2k and 2k + 1, its clear width `corridor_m` between walls CORRIDOR_WALL_M thick
+standing against the footprints, from x = 0 to the far end of the longer row; the rooms of row 2k sit at the top of
+their band and those of row 2k + 1 at the bottom of theirs, so every room backs onto a corridor.
+
 Footprints therefore never overlap and are at least `gap_m` apart. Each CAD-sourced object (graph node source ==
 "cad") of each copy is dropped with probability `drop_prob`, and each one a copy keeps is moved with probability
 `move_prob`: turned about the vertical through its box centre by up to `move_max_deg` and shifted horizontally by
@@ -34,11 +39,15 @@ from pydantic import BaseModel, ConfigDict, Field
 from ..errors import ConfigError
 from ..geometry import rotation_between
 from .bundle import Site
-from .compose import Layout, RoomEntry
+from ..localize.gravity import map_floor_height
+from .compose import CorridorEntry, Layout, RoomEntry
 
 
 # A moved object's draw is repeated at most this many times until its box stays inside the room's footprint.
 MOVE_TRIES = 8
+# A corridor's walls stand this far (metres) from the footprints of the rooms along it: a wall's thickness, so that
+# its face is not in the plane of the room's own scanned wall.
+CORRIDOR_WALL_M = 0.1
 
 
 class LayoutConfig(BaseModel):
@@ -55,6 +64,9 @@ class LayoutConfig(BaseModel):
     move_max_m: float = Field(0.5, ge=0, description="largest horizontal shift of a moved object's box centre, metres")
     move_max_deg: float = Field(45.0, ge=0, le=180, description="largest turn of a moved object about the vertical, "
                                 "degrees")
+    corridor_m: float = Field(0.0, ge=0, le=10, description="clear width of a corridor between each pair of rows, "
+                              "metres; 0: no corridors")
+    corridor_height_m: float = Field(2.5, gt=0, le=10, description="height of the corridors' walls, metres")
     seed: int = Field(0, ge=0)
 
 
@@ -67,7 +79,8 @@ class RoomSource:
     metres; cad_ids : ids of the graph nodes with source "cad", sorted. R_level : (3, 3) rotation taking the
     room's up (`Site.up`: a fused room's frame is its first camera's) onto +z; identity for a z-up room.
     cad_corners : per CAD id, (8, 2) xy of its box's corners, levelled room frame (what a move must keep inside the
-    footprint); empty when the source's objects are not to be moved.
+    footprint); empty when the source's objects are not to be moved. floor_z : height of its floor, levelled room
+    frame (a corridor along it shares it).
     """
 
     name: str
@@ -77,6 +90,7 @@ class RoomSource:
     cad_ids: tuple[str, ...]
     R_level: np.ndarray = field(default_factory=lambda: np.eye(3))
     cad_corners: tuple[np.ndarray, ...] = ()
+    floor_z: float = 0.0
 
     @classmethod
     def from_site(cls, name: str, bundle: str, site: Site) -> "RoomSource":
@@ -87,7 +101,9 @@ class RoomSource:
         cad = sorted((n for n in site.graph.nodes if n.source == "cad"), key=lambda n: n.id)
         signs = np.array([[i, j, k] for i in (-0.5, 0.5) for j in (-0.5, 0.5) for k in (-0.5, 0.5)])
         corners = tuple(((n.box_center + (signs * n.box_extent) @ n.box_R.T) @ R_level.T)[:, :2] for n in cad)
-        return cls(name, bundle, xy.min(axis=0), xy.max(axis=0), tuple(n.id for n in cad), R_level, corners)
+        floor = map_floor_height(site.raw.points.astype(np.float64) @ R_level.T,
+                                 site.raw.normals.astype(np.float64) @ R_level.T, np.array([0.0, 0.0, 1.0]))
+        return cls(name, bundle, xy.min(axis=0), xy.max(axis=0), tuple(n.id for n in cad), R_level, corners, floor)
 
     @property
     def T_level(self) -> np.ndarray:
@@ -183,18 +199,45 @@ def draw_moves(source: RoomSource, kept: list[str], rng: np.random.Generator,
     return moves
 
 
-def grid_corners(sizes: list[np.ndarray], cols: int, gap_m: float) -> list[np.ndarray]:
-    """(2,) min corner of each turned footprint of `sizes` ((2,) each), row by row, `cols` per row."""
+def grid_corners(sizes: list[np.ndarray], cols: int, gap_m: float,
+                 corridor_gap_m: float | None = None) -> list[np.ndarray]:
+    """(2,) min corner of each turned footprint of `sizes` ((2,) each), row by row, `cols` per row. With
+    `corridor_gap_m`, rows pair up about a corridor: an odd row's band starts corridor_gap_m after the band below,
+    and the rooms of an even row sit at the top of their band (both rows touch the corridor's walls)."""
     corners: list[np.ndarray] = []
     y = 0.0
-    for row_start in range(0, len(sizes), cols):
-        row = sizes[row_start:row_start + cols]
+    for row, row_start in enumerate(range(0, len(sizes), cols)):
+        members = sizes[row_start:row_start + cols]
+        band = max(float(s[1]) for s in members)
+        if corridor_gap_m is not None and row % 2 == 1:
+            y += corridor_gap_m - gap_m
+        top = corridor_gap_m is not None and row % 2 == 0
         x = 0.0
-        for size in row:
-            corners.append(np.array([x, y]))
+        for size in members:
+            corners.append(np.array([x, y + band - float(size[1]) if top else y]))
             x += float(size[0]) + gap_m
-        y += max(float(s[1]) for s in row) + gap_m
+        y += band + gap_m
     return corners
+
+
+def grid_corridors(sources: list[RoomSource], sizes: list[np.ndarray], corners: list[np.ndarray], cols: int,
+                   config: LayoutConfig) -> list[CorridorEntry]:
+    """The corridors of a grid laid out by `grid_corners` with corridors: corridor k runs along x between rows 2k
+    and 2k + 1 (the last one alone when the row count is odd), from x = 0 to the far end of the longer row, its
+    clear width config.corridor_m inside walls CORRIDOR_WALL_M thick, its floor at the median floor height of
+    those rooms."""
+    out = []
+    for k, row_start in enumerate(range(0, len(sizes), 2 * cols)):
+        lower = range(row_start, min(row_start + cols, len(sizes)))
+        both = range(row_start, min(row_start + 2 * cols, len(sizes)))
+        y0 = max(float(corners[i][1] + sizes[i][1]) for i in lower) + CORRIDOR_WALL_M
+        length = max(float(corners[i][0] + sizes[i][0]) for i in both)
+        floor = float(np.median([sources[i].floor_z for i in both]))
+        T = np.eye(4)
+        T[:3, 3] = [0.0, y0 + config.corridor_m / 2.0, floor]
+        out.append(CorridorEntry(name=f"c{k:02d}", T_building_corridor=T.tolist(), length_m=length,
+                                 width_m=config.corridor_m, height_m=config.corridor_height_m))
+    return out
 
 
 def generate_layout(sources: list[RoomSource], config: LayoutConfig) -> Layout:
@@ -209,8 +252,10 @@ def generate_layout(sources: list[RoomSource], config: LayoutConfig) -> Layout:
     moves = [draw_moves(s, [i for i in s.cad_ids if i not in dropped], rng, config)
              for s, (_, dropped) in zip(picked, draws)]
     sizes = [turned_size(s, turns) for s, (turns, _) in zip(picked, draws)]
-    corners = grid_corners(sizes, cols, config.gap_m)
+    corridor_gap = config.corridor_m + 2.0 * CORRIDOR_WALL_M if config.corridor_m > 0 else None
+    corners = grid_corners(sizes, cols, config.gap_m, corridor_gap)
     rooms = [RoomEntry(name=f"r{k:03d}", bundle=s.bundle, T_building_room=place_room(s, turns, corner).tolist(),
                        drop_objects=dropped, move_objects=moved)
              for k, (s, (turns, dropped), moved, corner) in enumerate(zip(picked, draws, moves, corners))]
-    return Layout(site_id=config.site_id, rooms=rooms)
+    corridors = grid_corridors(picked, sizes, corners, cols, config) if corridor_gap is not None else []
+    return Layout(site_id=config.site_id, rooms=rooms, corridors=corridors)

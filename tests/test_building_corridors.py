@@ -1,0 +1,253 @@
+"""Corridors in the building benchmark: the layout generator's corridors between pairs of rows, their panels as map
+points and as a mesh, a composed building with corridors (regions per segment, its up stated), views rendered in
+them, and the bench's corridor figures."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cadreg.bench import FrameOutcome, format_table, summarize, views_from_doc, within_5cm_5deg
+from cadreg.cli.main import main
+from cadreg.errors import ConfigError
+from cadreg.geometry import make_T
+from cadreg.site.compose import CorridorEntry, Layout, RoomEntry
+from cadreg.site.corridor import FLOOR_LABEL, WALL_LABEL, corridor_cloud
+from cadreg.site.layout import (CORRIDOR_WALL_M, LayoutConfig, RoomSource, generate_layout, grid_shape,
+                                placed_footprint)
+
+CAD_IDS = tuple(f"cad-{k}" for k in range(7))
+
+
+def _source(name: str, size=(3.5, 2.9), floor_z: float = 0.06) -> RoomSource:
+    lo = np.array([-0.2, 0.1])
+    return RoomSource(name, f"rooms/{name}", lo, lo + np.array(size, dtype=float), CAD_IDS, floor_z=floor_z)
+
+
+# --- layout --------------------------------------------------------------------------------------------------------
+
+
+def test_layout_corridors_run_between_pairs_of_rows_against_every_room() -> None:
+    """--corridor-m: corridor c<k> between rows 2k and 2k + 1, its clear width between walls CORRIDOR_WALL_M from
+    the footprints, every room's footprint against one of its walls, none over it; the turns and drops of the seed
+    are those of the layout without corridors."""
+    width = 1.8
+    sources = [_source("a"), _source("b", size=(4.0, 2.5), floor_z=0.1)]
+    plain = LayoutConfig(site_id="c11", rooms=11, seed=2)
+    layout = generate_layout(sources, plain.model_copy(update={"corridor_m": width, "corridor_height_m": 2.7}))
+    cols, rows = grid_shape(11)
+    assert (cols, rows) == (4, 3)
+    assert [c.name for c in layout.corridors] == ["c00", "c01"]  # rows 0-1, and row 2 alone
+    boxes = [placed_footprint(sources[k % 2], np.asarray(r.T_building_room)) for k, r in enumerate(layout.rooms)]
+    for k, c in enumerate(layout.corridors):
+        T = np.asarray(c.T_building_corridor)
+        assert np.allclose(T[:3, :3], np.eye(3)) and (c.width_m, c.height_m) == (width, 2.7)
+        assert T[2, 3] == pytest.approx(np.median([0.06, 0.1] * 4 if k == 0 else [0.06, 0.1, 0.06]))
+        lo_y, hi_y = T[1, 3] - width / 2, T[1, 3] + width / 2
+        below = boxes[2 * k * cols:(2 * k + 1) * cols]
+        above = boxes[(2 * k + 1) * cols:(2 * k + 2) * cols]
+        assert all(b[1, 1] + CORRIDOR_WALL_M == pytest.approx(lo_y) for b in below)  # backs against its wall
+        assert all(b[0, 1] - CORRIDOR_WALL_M == pytest.approx(hi_y) for b in above)
+        assert T[0, 3] == 0.0 and c.length_m == pytest.approx(max(b[1, 0] for b in below + above))
+        for b in boxes:  # no footprint reaches into the corridor or its walls
+            assert b[1, 1] <= lo_y - CORRIDOR_WALL_M + 1e-9 or b[0, 1] >= hi_y + CORRIDOR_WALL_M - 1e-9
+    without = generate_layout(sources, plain)
+    assert not without.corridors
+    assert [r.drop_objects for r in layout.rooms] == [r.drop_objects for r in without.rooms]
+    assert [np.asarray(r.T_building_room)[:3, :3].tolist() for r in layout.rooms] == \
+        [np.asarray(r.T_building_room)[:3, :3].tolist() for r in without.rooms]
+
+
+def test_layout_refuses_a_room_and_a_corridor_of_one_name() -> None:
+    room = RoomEntry(name="c00", bundle="rooms/a", T_building_room=np.eye(4).tolist())
+    with pytest.raises(ValueError, match="room and corridor names must be distinct"):
+        Layout(site_id="x", rooms=[room], corridors=[CorridorEntry(name="c00", T_building_corridor=np.eye(4).tolist(),
+                                                                   length_m=5.0, width_m=1.5)])
+    with pytest.raises(ValueError, match="rigid"):
+        CorridorEntry(name="c", T_building_corridor=(2 * np.eye(4)).tolist(), length_m=5.0, width_m=1.5)
+
+
+# --- panels ----------------------------------------------------------------------------------------------------
+
+
+def test_a_corridor_cloud_lies_on_its_panels_facing_in() -> None:
+    """Floor and four walls sampled every spacing: each point on one of the five planes inside the corridor's box,
+    its normal facing the corridor's inside, about area / spacing² of them."""
+    L, W, H, step = 4.0, 1.5, 2.5, 0.05
+    cloud = corridor_cloud(L, W, H, step)
+    p, n = cloud.points.astype(np.float64), cloud.normals.astype(np.float64)
+    assert np.all(p >= [-1e-6, -W / 2 - 1e-6, -1e-6]) and np.all(p <= [L + 1e-6, W / 2 + 1e-6, H + 1e-6])
+    on_floor = np.isclose(p[:, 2], 0.0, atol=1e-6)
+    on_plane = (on_floor | np.isclose(np.abs(p[:, 1]), W / 2, atol=1e-6) | np.isclose(p[:, 0], 0.0, atol=1e-6)
+                | np.isclose(p[:, 0], L, atol=1e-6))
+    facing_up = n[:, 2] > 0.99
+    assert on_plane.all() and np.all(on_floor[facing_up])
+    assert facing_up.sum() == pytest.approx(L * W / step**2, rel=0.1)
+    inward = np.array([L / 2, 0.0, H / 2]) - p
+    assert np.all(np.einsum("ij,ij->i", n, inward) > 0)
+    area = L * W + 2 * L * H + 2 * W * H
+    assert len(p) == pytest.approx(area / step**2, rel=0.1)
+    assert np.all(cloud.class_index == -1) and np.all(cloud.instance == -1)
+
+
+def test_a_corridor_mesh_is_its_panels_labelled_floor_and_wall() -> None:
+    from cadreg.render.building import corridor_mesh
+    from cadreg.render.raycast import MeshRenderer
+
+    entry = CorridorEntry(name="c", T_building_corridor=np.eye(4).tolist(), length_m=6.0, width_m=1.6, height_m=2.4)
+    mesh = corridor_mesh(entry)
+    assert set(np.unique(mesh.labels)) == {FLOOR_LABEL, WALL_LABEL} and mesh.n_instances == 0
+    assert mesh.floor_height_m() == pytest.approx(0.0)
+    assert np.allclose(mesh.vertices.min(axis=0), [0, -0.8, 0])
+    assert np.allclose(mesh.vertices.max(axis=0), [6, 0.8, 2.4])
+    # Rays from inside hit the wall, the floor and the end wall where the panels are.
+    renderer = MeshRenderer(mesh)
+    origin = np.array([[2.0, 0.0, 1.5]] * 3)
+    dirs = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+    assert np.allclose(renderer.cast_rays(origin, dirs), [0.8, 1.5, 4.0], atol=1e-5)
+
+
+# --- bench -------------------------------------------------------------------------------------------------------
+
+
+def test_bench_counts_corridor_views_apart() -> None:
+    inf = math.inf
+    outs = [
+        FrameOutcome(0, "ok", 0.01, 1.0, 10.0, confidence=0.9, truth_in_hypotheses=True, repeated=False),
+        FrameOutcome(1, "ambiguous", 0.02, 1.0, 10.0, confidence=0.4, truth_in_hypotheses=True, repeated=True),
+        # corridor views: an ambiguous answer with the truth among its poses, one without, a wrong ok, none
+        FrameOutcome(2, "ambiguous", 3.0, 0.5, 10.0, confidence=0.3, truth_in_hypotheses=True, repeated=False,
+                     corridor=True),
+        FrameOutcome(3, "ambiguous", 3.0, 0.5, 10.0, confidence=0.3, repeated=True, corridor=True),
+        FrameOutcome(4, "ok", 6.0, 0.5, 10.0, confidence=0.8, repeated=False, corridor=True),
+        FrameOutcome(5, "low_overlap", inf, inf, 10.0, confidence=0.1, repeated=False, corridor=True),
+    ]
+    s = summarize(outs)
+    assert s["unique"]["frames"] == 1 and s["repeated"]["frames"] == 1  # corridor views in neither
+    assert s["corridor"] == {"frames": 4, "ok": 1, "ok_wrong": 1, "ambiguous": 0.5, "ambiguous_with_truth": 0.25}
+    assert s["per_frame"][2]["corridor"] is True and "corridor" not in s["per_frame"][0]
+    table = format_table({"frames": 6, "skipped": [], "methods": {"cadreg": s}})
+    assert "corridor views: 4, ok 1, ok wrong 1, ambiguous 50.0%" in table
+    plain = format_table({"frames": 2, "skipped": [], "methods": {"cadreg": summarize(outs[:2])}})
+    assert "corridor views" not in plain
+    doc = {"rooms": {"a": {"T_building_room": np.eye(4).tolist()},
+                     "c00": {"T_building_room": make_T(t=[0.0, 5.0, 0.0]).tolist(), "corridor": True}},
+           "views": [{"index": 0, "room": "a", "repeated_in": [], "T_room_camera": np.eye(4).tolist()},
+                     {"index": 1, "room": "c00", "repeated_in": [], "T_room_camera": np.eye(4).tolist()}]}
+    truth = views_from_doc(doc)
+    assert not truth[0].corridor and truth[1].corridor
+
+
+# --- a composed building with a corridor (real scene0470) ---------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def corridor_building(scene0470_site_dir: Path, tmp_path_factory: pytest.TempPathFactory):
+    """Two scene0470 rooms side by side with a 1.6 m corridor along them (`site layout --corridor-m`), composed."""
+    out = tmp_path_factory.mktemp("corridor")
+    layout_path = out / "layout.json"
+    assert main(["site", "layout", "--room", f"scene0470={scene0470_site_dir}", "--rooms", "2", "--seed", "1",
+                 "--corridor-m", "1.6", "--site-id", "hall2", "--out", str(layout_path)]) == 0
+    assert main(["site", "compose", str(layout_path), "--out", str(out / "site")]) == 0
+    return layout_path, out / "site"
+
+
+@pytest.mark.realdata
+def test_a_composed_corridor_is_regions_of_points_and_the_building_states_its_up(corridor_building, capsys) -> None:
+    from cadreg import Localizer
+    from cadreg.site.bundle import Site
+    from cadreg.site.compose import CORRIDOR_SEGMENT_M, read_layout
+
+    layout_path, site_dir = corridor_building
+    layout = read_layout(layout_path)
+    assert '"corridors"' in layout_path.read_text() and len(layout.corridors) == 1
+    corridor = layout.corridors[0]
+    site = Site.load(site_dir)
+    segments = math.ceil(corridor.length_m / CORRIDOR_SEGMENT_M)
+    ids = [r.id for r in site.regions]
+    assert ids == ["r000", "r001"] + [f"c00.{k}" for k in range(segments)]
+    T = np.asarray(corridor.T_building_corridor)
+    xs = []
+    for region in site.regions[2:]:
+        assert region.nodes == () and region.floor_m == pytest.approx(T[2, 3], abs=0.02)
+        rows = site.map.points[slice(*region.map_range)].astype(np.float64) - T[:3, 3]
+        assert np.all(np.abs(rows[:, 1]) <= corridor.width_m / 2 + 1e-4)
+        assert rows[:, 2].max() == pytest.approx(corridor.height_m, abs=1e-4)
+        xs.append((rows[:, 0].min(), rows[:, 0].max()))
+    assert xs[0][0] == pytest.approx(0.0, abs=1e-4) and xs[-1][1] == pytest.approx(corridor.length_m, abs=1e-4)
+    assert all(a[1] <= b[0] for a, b in zip(xs, xs[1:]))  # segments one after the other
+    assert site.manifest["inputs"]["corridors"][0]["name"] == "c00"
+    # Its walls outnumber its floor: the up is the building's as compose states it, not the map normals' guess.
+    assert np.allclose(site.up, [0.0, 0.0, 1.0])
+    assert np.allclose(Localizer.from_site(site).up, [0.0, 0.0, 1.0])
+    capsys.readouterr()
+    assert main(["site", "info", str(site_dir)]) == 0
+    assert "c00.0" in capsys.readouterr().out
+
+
+@pytest.mark.realdata
+def test_views_in_a_corridor_are_rendered_and_never_answered_ok_wrongly(corridor_building, scene_parts,
+                                                                         tmp_path: Path) -> None:
+    """Views are drawn in rooms and corridor alike; a corridor view shows no object and its frame lies on the
+    composed map at its pose. Localized: a room view is found (its pose among those reported), and the corridor's,
+    which nothing places along a plain hallway, is not answered `ok`."""
+    from cadreg.io.frames import RecordedFrames
+    from cadreg import Localizer
+    from cadreg.render.building import building_rooms, render_building_views
+    from cadreg.site.bundle import Site
+    from cadreg.site.compose import read_layout
+    from cadreg.result import Status
+
+    layout_path, site_dir = corridor_building
+    layout = read_layout(layout_path)
+    mesh, nodes = scene_parts
+    rooms = building_rooms(layout, {layout.rooms[0].bundle: mesh}, {layout.rooms[0].bundle: nodes})
+    assert [r.corridor for r in rooms] == [False, False, True] and rooms[2].bundle.startswith("corridor")
+    views = render_building_views(rooms, tmp_path / "frames", 5, seed=4)
+    hall = [v for v in views if v.corridor]
+    room = [v for v in views if not v.corridor]
+    assert hall and room and all(v.room == "c00" for v in hall)
+    assert hall[0].to_dict()["corridor"] is True and room[0].to_dict()["corridor"] is False
+    frames = RecordedFrames.open(tmp_path / "frames")
+    loc = Localizer.from_site(Site.load(site_dir))
+    for view in (hall[0], room[0]):
+        frame, T_true = frames.load(view.index)
+        assert np.allclose(T_true, view.T_building_camera, atol=1e-6)
+        result = loc.localize(frame, top_k=10)
+        reported = [h.T_map_camera for h in result.hypotheses]
+        if result.T_map_camera is not None:
+            reported.append(result.T_map_camera)
+        if view.corridor:
+            assert result.status != Status.OK, result.diagnostics.notes
+        else:
+            assert any(within_5cm_5deg(T, T_true) for T in reported), result.diagnostics.notes
+
+
+@pytest.fixture(scope="module")
+def scene_parts(scene0470_dir: Path, scene0470_site_dir: Path):
+    from cadreg.render import LabelledMesh
+    from cadreg.site.bundle import Site
+
+    mesh = LabelledMesh.from_ply(scene0470_dir / "scene0470_00_vh_clean_2.ply",
+                                 scene0470_dir / "scene0470_00_vh_clean_2.labels.ply")
+    return mesh, Site.load(scene0470_site_dir).graph.nodes
+
+
+@pytest.mark.realdata
+def test_compose_refuses_a_tilted_corridor_and_region_ids_that_repeat(scene0470_site_dir: Path) -> None:
+    from cadreg.site.compose import compose_site
+
+    room = RoomEntry(name="c.0", bundle=str(scene0470_site_dir), T_building_room=np.eye(4).tolist())
+    far = make_T(t=[0.0, 10.0, 0.0])
+    clash = Layout(site_id="x", rooms=[room], corridors=[
+        CorridorEntry(name="c", T_building_corridor=far.tolist(), length_m=4.0, width_m=1.5)])
+    with pytest.raises(ConfigError, match="region ids repeat"):
+        compose_site(clash, "/")
+    tilt = make_T(np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]), [0.0, 10.0, 0.0])
+    tilted = Layout(site_id="x", rooms=[room.model_copy(update={"name": "a"})], corridors=[
+        CorridorEntry(name="c", T_building_corridor=tilt.tolist(), length_m=4.0, width_m=1.5)])
+    with pytest.raises(ConfigError, match="corridor 'c': its up"):
+        compose_site(tilted, "/")
