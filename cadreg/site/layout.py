@@ -10,11 +10,6 @@ turning:
 - each row's band (the tallest footprint of the row) starts exactly `gap_m` after the band of the row below (y);
   a room lower than its row's band sits at the band's bottom, so its gap to the row above is larger.
 
-With `corridor_m` > 0 the rows pair up about corridors (`compose.CorridorEntry`, cadreg/site/corridor.py): corridor
-c<k> runs along x between rows 2k and 2k + 1, its clear width `corridor_m` between walls CORRIDOR_WALL_M thick
-standing against the footprints, from x = 0 to the far end of the longer row; the rooms of row 2k sit at the top of
-their band and those of row 2k + 1 at the bottom of theirs, so every room backs onto a corridor.
-
 Footprints therefore never overlap and are at least `gap_m` apart. Each CAD-sourced object (graph node source ==
 "cad") of each copy is dropped with probability `drop_prob`, and each one a copy keeps is moved with probability
 `move_prob`: turned about the vertical through its box centre by up to `move_max_deg` and shifted horizontally by
@@ -22,6 +17,12 @@ up to `move_max_m`, redrawn (at most MOVE_TRIES times, else left) until its box 
 One seeded generator draws, per room in order, the quarter turn and then the drops (CAD node ids in sorted order),
 then, for every room in order again, the moves: the same seed gives the same layout, and the same turns and drops
 whatever `move_prob`.
+
+With `corridor_m` > 0 the rows pair up about corridors instead (`compose.CorridorEntry`, cadreg/site/corridor.py):
+corridor c<k> runs along x between rows 2k and 2k + 1, its clear width `corridor_m` between walls CORRIDOR_WALL_M
+thick standing against the footprints, from x = 0 to the far end of the longer row; the rooms of row 2k sit at the
+top of their band and those of row 2k + 1 at the bottom of theirs, so every room backs onto a corridor, and the
+seed's draws are those of the layout without corridors.
 
     RoomSource.from_site(name, bundle, site)   what the generator needs of a room bundle
     generate_layout(sources, config) -> Layout the layout (cadreg/site/compose.py's model)
@@ -38,8 +39,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from ..errors import ConfigError
 from ..geometry import rotation_between
-from .bundle import Site
 from ..localize.gravity import map_floor_height
+from .bundle import Site
 from .compose import CorridorEntry, Layout, RoomEntry
 
 
