@@ -136,6 +136,32 @@ def test_map_up_with_the_cameras_prior_is_not_held_to_z() -> None:
     assert np.allclose(map_up_axis(wall, prior=camera_up), camera_up / np.linalg.norm(camera_up))
 
 
+def _panel(origin, u, v, normal, step=0.1):
+    """(points, normals) of a grid over the rectangle origin + [0, 1]·u + [0, 1]·v, every `step` metres."""
+    a = np.linspace(0.0, 1.0, int(round(np.linalg.norm(u) / step)) + 1)
+    b = np.linspace(0.0, 1.0, int(round(np.linalg.norm(v) / step)) + 1)
+    A, B = np.meshgrid(a, b, indexing="ij")
+    pts = np.asarray(origin) + A.reshape(-1, 1) * np.asarray(u) + B.reshape(-1, 1) * np.asarray(v)
+    return pts, np.tile(np.asarray(normal, dtype=np.float64), (len(pts), 1))
+
+
+def test_map_up_of_a_corridor_is_its_floor_not_the_axis_of_its_long_walls() -> None:
+    """A 20 m corridor, 2 m wide, walls 2.5 m high, no ceiling: its long walls' normals outnumber the floor's, and
+    from the normals alone the walls' axis wins. With the points, the floor lies at one end (nothing under it) and
+    the walls at both: +z is kept. A y-up room whose floor, at one end, outscores its low walls keeps its y."""
+    parts = [_panel([0, -1, 0], [20, 0, 0], [0, 2, 0], [0, 0, 1]),
+             _panel([0, -1, 0], [20, 0, 0], [0, 0, 2.5], [0, 1, 0]),
+             _panel([0, 1, 0], [20, 0, 0], [0, 0, 2.5], [0, -1, 0])]
+    pts, normals = (np.vstack(x) for x in zip(*parts))
+    assert np.allclose(map_up_axis(normals), [0, 1, 0])  # the normals alone: the corridor on its side
+    assert np.allclose(map_up_axis(normals, points=pts), [0, 0, 1])
+    room = [_panel([0, 0, 0], [6, 0, 0], [0, 0, 6], [0, 1, 0]),
+            _panel([0, 0, 0], [0, 0, 6], [0, 1, 0], [1, 0, 0]), _panel([6, 0, 0], [0, 0, 6], [0, 1, 0], [-1, 0, 0]),
+            _panel([0, 0, 0], [6, 0, 0], [0, 1, 0], [0, 0, 1]), _panel([0, 0, 6], [6, 0, 0], [0, 1, 0], [0, 0, -1])]
+    pts, normals = (np.vstack(x) for x in zip(*room))
+    assert np.allclose(map_up_axis(normals, points=pts), [0, 1, 0])
+
+
 def test_up_from_a_cluttered_view_whose_flat_surfaces_are_a_small_share_of_it() -> None:
     """A wall (12 % of the points) and a strip of floor (1.5 %) behind clutter whose neighbourhoods are not flat: the
     first sample of 1000 points holds too few flat ones for an up (about 120 wall normals where a wall alone needs

@@ -228,9 +228,30 @@ def _up_from_normals(points: np.ndarray, normals: np.ndarray, *, max_roll_deg: f
     return Floor(u, None, "surfaces", int(par[:, best].sum()), floor_guess_m=guess, normals=normals)
 
 
-def map_up_axis(normals: np.ndarray, *, prior: np.ndarray | None = None, tolerance_deg: float = 5.0,
-                sample: int = 20000, candidates: int = 400, snap_deg: float = 3.0, z_keep_ratio: float = 0.8,
-                prior_cone_deg: float = 45.0, seed: int = 0) -> np.ndarray:
+# `map_up_axis` with the normals' points: +z, scoring at least FLOOR_KEEP_RATIO of the best axis, is kept when its
+# surfaces lie at one end of the map and the best's at both (the share of an axis's surfaces in the END_BAND of the
+# map's extent at one end, less that at the other, over both: at least ONE_SIDED, at most TWO_SIDED).
+FLOOR_KEEP_RATIO = 0.5
+ONE_SIDED = 0.7
+TWO_SIDED = 0.3
+END_BAND = 0.1
+
+
+def _one_sided(points: np.ndarray, along: np.ndarray, axis: np.ndarray) -> float:
+    """|a − b| / (a + b) (0 when both are 0): a and b count the points marked `along` (their normal parallel to
+    `axis`) in the END_BAND share of the extent of all `points` along `axis` at its low and at its high end. A floor
+    under an open top reads 1; two facing walls, 0."""
+    h = points @ axis
+    lo, hi = np.percentile(h, 0.5), np.percentile(h, 99.5)
+    band = END_BAND * (hi - lo)
+    a = int(np.count_nonzero(along & (h <= lo + band)))
+    b = int(np.count_nonzero(along & (h >= hi - band)))
+    return abs(a - b) / (a + b) if a + b else 0.0
+
+
+def map_up_axis(normals: np.ndarray, *, points: np.ndarray | None = None, prior: np.ndarray | None = None,
+                tolerance_deg: float = 5.0, sample: int = 20000, candidates: int = 400, snap_deg: float = 3.0,
+                z_keep_ratio: float = 0.8, prior_cone_deg: float = 45.0, seed: int = 0) -> np.ndarray:
     """The map's up direction (3,) from its surface normals, for sites that do not state it.
 
     Indoors, the most common normal direction with the most perpendicular ones (walls) is vertical: every
@@ -238,6 +259,12 @@ def map_up_axis(normals: np.ndarray, *, prior: np.ndarray | None = None, toleran
     refined as the mean of its parallel normals. Sign: floors and table tops face up and outnumber ceilings.
     A box-shaped room scores its three axes alike, so +z (the convention of ScanNet, of the demo site and of
     most building scans) is kept unless another direction scores clearly better.
+
+    points : (n, 3) the normals' points, when at hand: then +z is also kept when it scores at least
+    FLOOR_KEEP_RATIO of the best, its surfaces lie at one end of the map (a floor, nothing under it: `_one_sided`
+    at least ONE_SIDED) and the best's at both (facing walls: at most TWO_SIDED). A corridor's long walls outnumber
+    its floor, and the up of a scan of one came out as the corridor's cross axis: every frame was searched on its
+    side.
 
     prior : (3,) a rough up of the map's own (the mean up of the cameras that recorded it, `fuse.fused_up`):
     then the best candidate within prior_cone_deg of it wins and faces its way, with no +z preference. A map
@@ -247,9 +274,12 @@ def map_up_axis(normals: np.ndarray, *, prior: np.ndarray | None = None, toleran
     """
     rng = np.random.default_rng(seed)
     n = np.asarray(normals, dtype=np.float64)
-    n = n[np.linalg.norm(n, axis=1) > 0.5]
+    keep = np.linalg.norm(n, axis=1) > 0.5
+    n = n[keep]
+    p = None if points is None else np.asarray(points, dtype=np.float64)[keep]
     if len(n) > sample:
-        n = n[rng.choice(len(n), sample, replace=False)]
+        pick = rng.choice(len(n), sample, replace=False)
+        n, p = n[pick], None if p is None else p[pick]
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     cand = n[rng.choice(len(n), min(candidates, len(n)), replace=False)]
     if prior is None:
@@ -265,6 +295,10 @@ def map_up_axis(normals: np.ndarray, *, prior: np.ndarray | None = None, toleran
         score = np.where(cand @ prior >= np.cos(np.radians(prior_cone_deg)), score, -1.0)
     best = int(np.argmax(score))
     if prior is None and score[0] >= z_keep_ratio * score[best]:
+        return np.array([0.0, 0.0, 1.0])
+    if (prior is None and p is not None and score[0] >= FLOOR_KEEP_RATIO * score[best]
+            and _one_sided(p, par[:, 0], cand[0]) >= ONE_SIDED
+            and _one_sided(p, par[:, best], cand[best]) <= TWO_SIDED):
         return np.array([0.0, 0.0, 1.0])
     p = n[par[:, best]]
     if not len(p):  # the prior itself with no surface along it (a map of walls alone): the prior stands

@@ -134,7 +134,7 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         surface_xyz = surfaces.points.astype(np.float64)
         surface_normals = surfaces.normals.astype(np.float64)
         # As the site states it (a fused map), else from the map's surfaces: +z for ScanNet and the demo.
-        up = site.up if site.up is not None else map_up_axis(surface_normals)
+        up = site.up if site.up is not None else map_up_axis(surface_normals, points=surface_xyz)
         up = up / np.linalg.norm(up)
         if site.field_grid is not None:
             field = DistanceField.from_grid(site.field_grid)
