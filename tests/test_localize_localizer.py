@@ -284,6 +284,35 @@ def test_a_bare_wall_is_never_answered_ok(scene0470_site_dir, tilt_deg: float) -
     assert result.status != Status.OK, (result.status, result.confidence)
 
 
+def test_a_close_view_of_a_door_without_the_floor_is_not_pinned_by_the_door(scene0470_site_dir, scene0470_dir,
+                                                                           tmp_path) -> None:
+    """A robot's camera 0.75 m up, 0.6 m from scene0470's door and looking at it: the door and a strip of the wall
+    beside it fill the frame, flush, and no floor is seen. The graph matched the door, whose visible part's centroid
+    lies lower than the whole door's, and the refinement, free to slide up and down the wall, left the camera 9 cm
+    too low: answered `ok`, confidence 0.95. Without the floor the door does not pin the camera's height: the slide
+    probe tests the pose, and it is not claimed."""
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.render.mesh import LabelledMesh
+    from cadreg.render.sequence import render_frames
+    from cadreg.site.bundle import Site
+
+    T_door = np.array([[0.586541310172, 0.065209200776, 0.807289942707, 2.857502905138],
+                       [-0.809816309107, 0.031322157615, 0.585846795628, 2.223546095393],
+                       [0.012916538494, -0.997379908849, 0.071179213657, 0.750674864960],
+                       [0.0, 0.0, 0.0, 1.0]])
+    mesh = LabelledMesh.from_ply(scene0470_dir / "scene0470_00_vh_clean_2.ply",
+                                 scene0470_dir / "scene0470_00_vh_clean_2.labels.ply")
+    render_frames(mesh, tmp_path / "frames", 1, seed=5, poses=[T_door])
+    frame, T_true = RecordedFrames.open(tmp_path / "frames").load(0)
+    assert frame.labels is not None and set(np.unique(frame.labels)) <= {1, 8}  # wall and door only
+    r = Localizer.from_site(Site.load(scene0470_site_dir)).localize(frame)
+    assert not any(n.startswith("up from floor") for n in r.diagnostics.notes)
+    if r.status == Status.OK:  # claimed only where it is right
+        assert pose_errors(r.T_map_camera, T_true)[0] < 0.05, r.diagnostics.notes
+    else:
+        assert r.status == Status.UNCERTAIN and any("fits as well" in n for n in r.diagnostics.notes)
+
+
 def test_the_margin_is_to_the_best_distinct_refined_rival(localizer) -> None:
     """Refined contenders best first: a runner-up that converged onto the winner is no rival and must not hide a
     distinct one behind it (twin rooms at 0.962 and 0.947 with a copy of the first between them were answered
