@@ -276,10 +276,10 @@ def map_up_axis(normals: np.ndarray, *, points: np.ndarray | None = None, prior:
     n = np.asarray(normals, dtype=np.float64)
     keep = np.linalg.norm(n, axis=1) > 0.5
     n = n[keep]
-    p = None if points is None else np.asarray(points, dtype=np.float64)[keep]
+    xyz = None if points is None else np.asarray(points, dtype=np.float64)[keep]
     if len(n) > sample:
         pick = rng.choice(len(n), sample, replace=False)
-        n, p = n[pick], None if p is None else p[pick]
+        n, xyz = n[pick], None if xyz is None else xyz[pick]
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     cand = n[rng.choice(len(n), min(candidates, len(n)), replace=False)]
     if prior is None:
@@ -296,9 +296,9 @@ def map_up_axis(normals: np.ndarray, *, points: np.ndarray | None = None, prior:
     best = int(np.argmax(score))
     if prior is None and score[0] >= z_keep_ratio * score[best]:
         return np.array([0.0, 0.0, 1.0])
-    if (prior is None and p is not None and score[0] >= FLOOR_KEEP_RATIO * score[best]
-            and _one_sided(p, par[:, 0], cand[0]) >= ONE_SIDED
-            and _one_sided(p, par[:, best], cand[best]) <= TWO_SIDED):
+    if (prior is None and xyz is not None and score[0] >= FLOOR_KEEP_RATIO * score[best]
+            and _one_sided(xyz, par[:, 0], cand[0]) >= ONE_SIDED
+            and _one_sided(xyz, par[:, best], cand[best]) <= TWO_SIDED):
         return np.array([0.0, 0.0, 1.0])
     p = n[par[:, best]]
     if not len(p):  # the prior itself with no surface along it (a map of walls alone): the prior stands
