@@ -4,6 +4,7 @@ them, and the bench's corridor figures."""
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -251,3 +252,28 @@ def test_compose_refuses_a_tilted_corridor_and_region_ids_that_repeat(scene0470_
         CorridorEntry(name="c", T_building_corridor=tilt.tolist(), length_m=4.0, width_m=1.5)])
     with pytest.raises(ConfigError, match="corridor 'c': its up"):
         compose_site(tilted, "/")
+
+
+@pytest.mark.realdata
+def test_render_layout_and_bench_carry_the_corridors_through_the_cli(corridor_building, scene0470_dir: Path,
+                                                                     tmp_path: Path, capsys) -> None:
+    """`cadreg render --layout` of a layout with a corridor: views.json marks the corridor (and its views), the
+    printout counts rooms, corridors and corridor views, and `cadreg bench` puts those views in its corridor
+    figures."""
+    layout_path, site_dir = corridor_building
+    out = tmp_path / "frames"
+    capsys.readouterr()
+    assert main(["render", "--layout", str(layout_path), "--mesh", str(scene0470_dir / "scene0470_00_vh_clean_2.ply"),
+                 "--labels", str(scene0470_dir / "scene0470_00_vh_clean_2.labels.ply"), "--out", str(out),
+                 "--n", "5", "--seed", "4"]) == 0
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    doc = json.loads((out / "views.json").read_text())
+    assert (printed["rooms"], printed["corridors"]) == (2, 1)
+    assert doc["rooms"]["c00"]["corridor"] is True and "corridor" not in doc["rooms"]["r000"]
+    hall = [v for v in doc["views"] if v["corridor"]]
+    assert printed["corridor_views"] == len(hall) > 0 and all(v["room"] == "c00" for v in hall)
+    report = tmp_path / "bench.json"
+    assert main(["bench", "--site", str(site_dir), "--frames", str(out), "--json", str(report)]) == 0
+    summary = json.loads(report.read_text())["methods"]["cadreg"]
+    assert summary["corridor"]["frames"] == len(hall) and summary["corridor"]["ok_wrong"] == 0
+    assert summary["unique"]["frames"] + summary["repeated"]["frames"] == 5 - len(hall)
