@@ -229,12 +229,11 @@ def test_views_in_a_corridor_are_rendered_and_never_answered_ok_wrongly(corridor
 
 @pytest.fixture(scope="module")
 def scene_parts(scene0470_dir: Path, scene0470_site_dir: Path):
-    from cadreg.render import LabelledMesh
+    from conftest import scene0470_mesh
+
     from cadreg.site.bundle import Site
 
-    mesh = LabelledMesh.from_ply(scene0470_dir / "scene0470_00_vh_clean_2.ply",
-                                 scene0470_dir / "scene0470_00_vh_clean_2.labels.ply")
-    return mesh, Site.load(scene0470_site_dir).graph.nodes
+    return scene0470_mesh(scene0470_dir), Site.load(scene0470_site_dir).graph.nodes
 
 
 @pytest.mark.realdata

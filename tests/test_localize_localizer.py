@@ -291,8 +291,9 @@ def test_a_close_view_of_a_door_without_the_floor_is_not_pinned_by_the_door(scen
     lies lower than the whole door's, and the refinement, free to slide up and down the wall, left the camera 9 cm
     too low: answered `ok`, confidence 0.95. Without the floor the door does not pin the camera's height: the slide
     probe tests the pose, and it is not claimed."""
+    from conftest import scene0470_mesh
+
     from cadreg.io.frames import RecordedFrames
-    from cadreg.render.mesh import LabelledMesh
     from cadreg.render.sequence import render_frames
     from cadreg.site.bundle import Site
 
@@ -300,9 +301,7 @@ def test_a_close_view_of_a_door_without_the_floor_is_not_pinned_by_the_door(scen
                        [-0.809816309107, 0.031322157615, 0.585846795628, 2.223546095393],
                        [0.012916538494, -0.997379908849, 0.071179213657, 0.750674864960],
                        [0.0, 0.0, 0.0, 1.0]])
-    mesh = LabelledMesh.from_ply(scene0470_dir / "scene0470_00_vh_clean_2.ply",
-                                 scene0470_dir / "scene0470_00_vh_clean_2.labels.ply")
-    render_frames(mesh, tmp_path / "frames", 1, seed=5, poses=[T_door])
+    render_frames(scene0470_mesh(scene0470_dir), tmp_path / "frames", 1, seed=5, poses=[T_door])
     frame, T_true = RecordedFrames.open(tmp_path / "frames").load(0)
     assert frame.labels is not None and set(np.unique(frame.labels)) <= {1, 8}  # wall and door only
     r = Localizer.from_site(Site.load(scene0470_site_dir)).localize(frame)
