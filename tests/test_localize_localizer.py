@@ -247,8 +247,9 @@ def test_an_answer_taken_after_every_better_pose_saw_through_the_map_agrees_on_i
     assert any("saw through the map: took the next" in n for n in r.diagnostics.notes)
     assert r.status == Status.UNCERTAIN and r.T_map_camera is None
     assert pose_errors(r.hypotheses[0].T_map_camera, T_true)[0] > 0.5  # the pose it did not claim is wrong
-    # without the gate it is claimed
-    loose = LocalizeConfig(match=MatchConfig(min_depth_agreement_passed_over=0.0))
+    # Without the gate it is claimed (the colour gate off as well: the frame's chroma correlates 0.08 with the
+    # map's there, and that holds it back on its own).
+    loose = LocalizeConfig(match=MatchConfig(min_depth_agreement_passed_over=0.0, min_chroma_correlation=-1.0))
     assert Localizer.from_site(site, loose).localize(frame).status == Status.OK
 
 
@@ -310,6 +311,69 @@ def test_a_close_view_of_a_door_without_the_floor_is_not_pinned_by_the_door(scen
         assert pose_errors(r.T_map_camera, T_true)[0] < 0.05, r.diagnostics.notes
     else:
         assert r.status == Status.UNCERTAIN and any("fits as well" in n for n in r.diagnostics.notes)
+
+
+def _chroma_reversed(frame: Frame) -> Frame:
+    """The frame with every colour's chroma turned to its opposite about its own grey (orange becomes blue, white
+    stays white): the same shapes, the colours of another place."""
+    rgb = frame.color.astype(np.float64)
+    grey = rgb.mean(axis=2, keepdims=True)
+    return replace(frame, color=np.clip(np.rint(2 * grey - rgb), 0, 255).astype(np.uint8))
+
+
+def test_a_pose_whose_colours_are_not_the_maps_is_not_ok(scene0470_site_dir, scene0470_dir, tmp_path) -> None:
+    """Frame 6 of `cadreg render --seed 7` without its labels (the door, the whiteboard, the floor): answered `ok`
+    and right. The same depth with each colour's chroma reversed is the same shape in other colours, as a view of
+    another place of that shape would be: along a* and b* the frame's colours now run against the map's (the
+    correlation turns negative), and the pose, however well it fits, is not claimed."""
+    from conftest import scene0470_mesh
+
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.render.sequence import render_frames
+    from cadreg.site.bundle import Site
+
+    T_view = np.array([[0.151856002985, -0.444472487241, 0.882827255154, 0.705756650069],
+                       [-0.985587089875, -0.000724100586, 0.169167266192, 1.699125599499],
+                       [-0.074550939831, -0.895792210149, -0.43817630425, 1.697019826155],
+                       [0.0, 0.0, 0.0, 1.0]])
+    render_frames(scene0470_mesh(scene0470_dir), tmp_path / "frames", 1, seed=7, poses=[T_view])
+    frame, T_true = RecordedFrames.open(tmp_path / "frames").load(0)
+    frame = replace(frame, labels=None)
+    loc = Localizer.from_site(Site.load(scene0470_site_dir))
+    r = loc.localize(frame)
+    assert r.status == Status.OK and pose_errors(r.T_map_camera, T_true)[0] < 0.05
+    correlation = [n for n in r.diagnostics.notes if n.startswith("colour: ")]
+    assert correlation and float(correlation[0].split("correlates ")[1].split()[0]) > 0.5
+    r = loc.localize(_chroma_reversed(frame))
+    assert r.status == Status.UNCERTAIN and r.T_map_camera is None, r.diagnostics.notes
+    assert pose_errors(r.hypotheses[0].T_map_camera, T_true)[0] < 0.05  # the same pose, not claimed
+    assert any(n.startswith("uncertain") and "colours are not the map's" in n for n in r.diagnostics.notes)
+
+
+def test_a_close_view_of_a_door_in_a_corner_is_not_claimed_in_another_corner(scene0470_site_dir, scene0470_dir,
+                                                                            tmp_path) -> None:
+    """A robot's camera 0.5 m up, looking into the corner of scene0470's orange door, the white wall and the floor
+    (frame 79 of `cadreg render --height 0.3 0.8 --pitch -5 20 --n 150 --seed 5`). Without labels the search found
+    another corner of the room, 2.1 m off and turned 87 degrees, where walls and floor fit as well (fitness 0.87,
+    depth agreement 0.79), and answered it `ok` with confidence 0.83. The map's colours there are white wall where
+    the frame shows the door: claimed only where it is right."""
+    from conftest import scene0470_mesh
+
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.render.sequence import render_frames
+    from cadreg.site.bundle import Site
+
+    T_corner = np.array([[0.66020416264, -0.186963546966, 0.727444221737, 2.588325742854],
+                         [-0.749164580354, -0.233156767784, 0.619992220257, 2.124116647567],
+                         [0.053692598893, -0.954296889727, -0.293997535843, 0.512223554859],
+                         [0.0, 0.0, 0.0, 1.0]])
+    render_frames(scene0470_mesh(scene0470_dir), tmp_path / "frames", 1, seed=5, poses=[T_corner])
+    frame, T_true = RecordedFrames.open(tmp_path / "frames").load(0)
+    r = Localizer.from_site(Site.load(scene0470_site_dir)).localize(replace(frame, labels=None))
+    if r.status == Status.OK:
+        assert pose_errors(r.T_map_camera, T_true)[0] < 0.05, r.diagnostics.notes
+    else:
+        assert r.status in (Status.UNCERTAIN, Status.AMBIGUOUS), r.diagnostics.notes
 
 
 def test_the_margin_is_to_the_best_distinct_refined_rival(localizer) -> None:

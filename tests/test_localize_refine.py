@@ -277,3 +277,28 @@ def test_frame_points_far_from_the_map_never_reach_small_gicps_search(scene_and_
     assert len(sources) == 2 * len(sources_alone)  # no GICP ran
     assert lost.iterations == 0 and not lost.converged and lost.covariance is None
     np.testing.assert_array_equal(lost.T_map_camera, T0)
+
+
+def test_chroma_correlation_reads_the_chroma_axes_that_vary_on_both_sides() -> None:
+    from cadreg.localize.refine import chroma_correlation
+
+    rng = np.random.default_rng(0)
+    map_lab = np.column_stack([rng.uniform(20, 90, 500), rng.normal(10, 8, 500), rng.normal(20, 12, 500)])
+    # A sensor's exposure and white balance: lightness, and each chroma axis scaled and shifted, plus noise.
+    frame_lab = map_lab * [0.7, 1.3, 0.8] + [10, -4, 6] + rng.normal(0, 1, (500, 3))
+    assert chroma_correlation(frame_lab, map_lab, 3.0) > 0.95
+    # Lightness does not count: shading and highlights move it.
+    dark = frame_lab.copy()
+    dark[:, 0] = rng.uniform(0, 100, 500)
+    assert chroma_correlation(dark, map_lab, 3.0) > 0.95
+    # The colours of another place: one chroma axis runs against the map's, and the least axis is what counts.
+    other = frame_lab.copy()
+    other[:, 2] = -other[:, 2]
+    assert chroma_correlation(other, map_lab, 3.0) < -0.9
+    # A map without colour, or a grey frame, says nothing; an axis flat on one side is left out.
+    grey = np.column_stack([map_lab[:, 0], np.zeros(500), np.zeros(500)])
+    assert chroma_correlation(frame_lab, grey, 3.0) is None
+    assert chroma_correlation(grey, map_lab, 3.0) is None
+    half = other.copy()
+    half[:, 2] = 5.0  # b* flat in the frame: only a* counts
+    assert chroma_correlation(half, map_lab, 3.0) > 0.95

@@ -563,6 +563,11 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
             # As unpinned as the covariance's limit twice over: uncertain, its confidence halved. (Only an answer
             # that would be `ok`: an ambiguous one lists its rivals, and claims none of them either.)
             trust, status = trust_for(max(slide, 2.0 * mc.max_pose_std_m)), Status.UNCERTAIN
+        # The shape alone may fit another place: a close view of a door in a corner fits every corner of the room.
+        # The colours there are the other place's (`_colours_disagree`).
+        recoloured = status == Status.OK and self._colours_disagree(scan, T, choice.center_camera, diag)
+        if recoloured:
+            trust, status = 0.5 * trust, Status.UNCERTAIN
         diag.notes.append(f"trust: fitness {choice.fitness:.3f}, rmse {100 * choice.rmse_m:.2f} cm, margin "
                           f"{choice.margin:.3f}, see-through {choice.see_through:.3f}, pose std {100 * std:.2f} cm, "
                           f"depth agreement {choice.depth_agreement:.3f}, map coverage {choice.coverage:.3f}")
@@ -582,7 +587,8 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
             diag.notes.append(f"uncertain: confidence {trust:.2f}, see-through {choice.see_through:.2f}, "
                               f"pose std {100 * std:.2f} cm, depth agreement {choice.depth_agreement:.2f}"
                               + (f"; {100 * mc.slide_probe_m:.0f} cm along the frame's least constrained direction "
-                                 "it fits as well" if slides else ""))
+                                 "it fits as well" if slides else "")
+                              + ("; the frame's colours are not the map's there" if recoloured else ""))
             # Listed once: the candidates at the refined pose (the winner's coarse pose, a few millimetres off) are
             # not listed beside it.
             best = replace(winner.hypothesis, T_map_camera=T)
@@ -629,6 +635,20 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
                 if self._depth_agreement(T_moved, scan, center_camera) >= agreement - mc.slide_agreement_drop:
                     return True
         return False
+
+    def _colours_disagree(self, scan: Scan, T_map_camera: np.ndarray, center_camera: np.ndarray,
+                          diag: Diagnostics) -> bool:
+        """Whether the frame's colours, at a pose, fail to follow the map's: along a chroma axis both vary on, they
+        correlate less than MatchConfig.min_chroma_correlation (`RefineMap.chroma_correlation`; the fit sample of
+        the frame, within the refinement's inlier distance). The correlation, when measured, goes to the notes."""
+        mc = self.config.match
+        r = self.maps_at(T_map_camera, center_camera).refine_map.chroma_correlation(
+            transform_points(T_map_camera, scan.fit_xyz), scan.fit_lab, inlier_m=self.config.refine.inlier_m,
+            min_std=mc.chroma_min_std)
+        if r is None:
+            return False
+        diag.notes.append(f"colour: the frame's chroma correlates {r:.2f} with the map's at the answer")
+        return r < mc.min_chroma_correlation
 
     def _depth_agreement(self, T_map_camera: np.ndarray, scan: Scan, center_camera: np.ndarray) -> float:
         """How the frame's depth agrees with the map's at a pose, as the answer's is measured (`_refine`, from the

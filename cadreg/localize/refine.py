@@ -22,6 +22,10 @@ from .grid_gicp import MapNormals, gicp, plane_normals
 from .point_tree import PointTree, tree_order
 from .points import FramePoints, voxel_indices
 
+# A correlation of fewer colour pairs than this says little (a pose that leaves most of the frame off the map is
+# judged by its fitness, not by its colours).
+MIN_COLOR_PAIRS = 50
+
 REFINE_METHODS = ("color_gicp", "small_gicp", "open3d_colored_icp")
 # Neighbours of each point's covariance in GICP: small_gicp's default, for the map's side and the frame's alike.
 GICP_NEIGHBORS = 10
@@ -43,6 +47,21 @@ WIDE_PASS = 2.5
 # wide pass's reach plus this from the map at the start pairs with nothing in either pass unless the pose moves
 # that far, and is left out (the result is the same: same iterations, same inliers).
 REACH_MARGIN_M = 0.25
+
+
+def chroma_correlation(frame_lab: np.ndarray, map_lab: np.ndarray, min_std: float) -> float | None:
+    """The least Pearson correlation, over the chroma axes (CIE a*, b*) along which both (n, 3) Lab colour sets
+    spread at least `min_std`, between a frame's colours and the map's at the same points; None when neither axis
+    spreads so in both. A correlation, not a colour distance: a sensor's exposure and white balance scale and shift
+    a chroma axis, and the map's colours were fused from other frames (or another sensor)."""
+    least = None
+    for axis in (1, 2):
+        f, m = frame_lab[:, axis], map_lab[:, axis]
+        if f.std() < min_std or m.std() < min_std:
+            continue
+        r = float(np.corrcoef(f, m)[0, 1])
+        least = r if least is None else min(least, r)
+    return least
 
 
 def crop_to_roi(points: FramePoints, radius_m: float,
@@ -227,6 +246,25 @@ class RefineMap:
         dE = np.linalg.norm(lab[ok] - self.fit_lab[nn], axis=1)
         col = float(np.exp(-(dE / color_scale) ** 2).mean())
         return float(ok.mean()), sem, col
+
+    def chroma_correlation(self, xyz_map: np.ndarray, lab: np.ndarray, *, inlier_m: float,
+                           min_std: float) -> float | None:
+        """The least correlation, over the chroma axes (CIE a*, b*) along which the frame's inliers and their map
+        points both spread at least `min_std`, between the frame's colours and the map's (`chroma_correlation`);
+        None when no axis spreads so, or fewer than MIN_COLOR_PAIRS points are inliers.
+        xyz_map (n, 3) frame points placed in the map; lab (n, 3) their CIE Lab colours (`Scan.fit_lab`)."""
+        d, nn = self.fit_tree.query(xyz_map, k=1, distance_upper_bound=inlier_m)
+        ok = np.isfinite(d)
+        if ok.sum() < MIN_COLOR_PAIRS:
+            return None
+        nn = nn[ok]
+        # Only these points' colours converted when the whole fitness grid's are not at hand (a building's region
+        # maps: `fit_lab`).
+        if self._fit_lab is not None:
+            map_lab = self._fit_lab[nn]
+        else:
+            map_lab = rgb_to_lab(self.rgb[nn if isinstance(self._fit_keep, slice) else self._fit_keep[nn]])
+        return chroma_correlation(lab[ok], map_lab, min_std)
 
     def coarse_align(self, source: small_gicp.PointCloud, init_T_map_camera: np.ndarray, *,
                      max_correspondence_m: float = 0.3, max_iterations: int = 20) -> np.ndarray:
