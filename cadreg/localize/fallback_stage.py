@@ -141,8 +141,14 @@ class FallbackStage:
         # In a building the same view may fit in many rooms: more distinct leaves are kept (a room's own leaves
         # would otherwise crowd its twins out), then ranked by room.
         count = lf.candidates if len(self.maps) == 1 else lf.candidates * (1 + self.config.regions.max_verified)
-        hyp = pyr.hypotheses(poses, scores, R_up, count=count, min_translation_m=mc.distinct_translation_m,
+        reserve = lf.reserve if len(self.maps) == 1 else 0
+        hyp = pyr.hypotheses(poses, scores, R_up, count=count + reserve, min_translation_m=mc.distinct_translation_m,
                              min_rotation_deg=mc.distinct_rotation_deg)
+        if reserve:
+            # The leaves after the first `count` are kept for the second look (`Localizer._second_look`): the
+            # choice is greedy in score order, so the first `count` are those a search of `count` gives.
+            scan.reserve = hyp.take(np.arange(min(count, len(hyp)), len(hyp)))
+            hyp = hyp.take(np.arange(min(count, len(hyp))))
         hyp = polish(self.field, scan.score_xyz, hyp, self.up, step_m=lf.voxel_m / 2, step_deg=lf.yaw_step_deg / 2,
                      later_within=self.config.regions.tie_margin + POLISH_LATER_GAIN)
         if len(self.maps) > 1 and len(hyp):
@@ -153,6 +159,22 @@ class FallbackStage:
         notes.append(f"label-free search: {len(yaws)} yaws, {stats.nodes} nodes, best leaf {stats.best:.2f}"
                      + (" (node cap reached)" if stats.capped else ""))
         return hyp if len(hyp) else None
+
+    def _leaves_in_the_frames_colours(self, scan: Scan) -> Hypotheses | None:
+        """The label-free search's reserve leaves (`Scan.reserve`) at which the frame's colours follow the map's
+        (`Localizer._chroma_at` at least MatchConfig.min_chroma_correlation; a leaf where the map's colours are too
+        flat to tell is left out: the frame's are not, or its answer would not have been ruled out by them),
+        polished as the first leaves were; None when none is. The reserve is spent."""
+        reserve, scan.reserve = scan.reserve, None
+        if reserve is None or not len(reserve):
+            return None
+        lf = self.config.label_free
+        chroma = [self._chroma_at(scan, reserve.T(i), scan.center_camera) for i in range(len(reserve))]
+        keep = np.array([c is not None and not self._chroma_rules_out(c) for c in chroma])
+        if not keep.any():
+            return None
+        return polish(self.field, scan.score_xyz, reserve.take(np.flatnonzero(keep)), self.up, step_m=lf.voxel_m / 2,
+                      step_deg=lf.yaw_step_deg / 2)
 
     def _search_boxes(self, scan: Scan, R_level_map: np.ndarray,
                       rooms: list[Region]) -> list[tuple[np.ndarray | None, float | None, int]]:

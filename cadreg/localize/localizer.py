@@ -237,6 +237,9 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
             return self._no_pose(scan, diag, frame.frame_id)
         with timer("refine"):
             choice = self._refine(scan, candidates, method, diag)
+        if scan.reserve is not None and self._chroma_rules_out(choice.chroma):
+            with timer("fallback"):
+                candidates, choice = self._second_look(scan, candidates, choice, method, diag)
         return self._result(scan, candidates, choice, top_k, diag, frame.frame_id)
 
     def track(self, frame: Frame, state: TrackState | None, *, t_s: float, top_k: int | None = None,
@@ -429,11 +432,7 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         the graph's best is weak (FallbackConfig.min_graph_fitness)."""
         fb = self.config.fallback
         with timer("verify"):
-            # At most COARSE_POINTS frame points (a coarser grid for a frame that spans a large room): each
-            # candidate's coarse GICP costs a KD-tree query of each per iteration.
-            coarse = voxel_budget(scan.down, self.config.refine.coarse_voxel_m, COARSE_POINTS)
-            source = small_gicp.preprocess_points(coarse.xyz, self.config.refine.coarse_voxel_m,
-                                                  num_neighbors=GICP_NEIGHBORS)[0]
+            source = self._coarse_source(scan)
             candidates = self._align(hyp, source, scan)
             if prior is not None:
                 # A client's pose prior is one more hypothesis, checked like the others (never trusted blindly).
@@ -467,6 +466,13 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
             earlier_alike = np.tril(~self._distinct_pairs(poses, poses), k=-1)  # [k, j]: j < k at k's pose
             candidates = [c for c, alike in zip(candidates, earlier_alike) if not alike.any()]
         return candidates
+
+    def _coarse_source(self, scan: Scan) -> small_gicp.PointCloud:
+        """The frame's points of the coarse GICP: at most COARSE_POINTS (a coarser grid for a frame that spans a
+        large room): each candidate's coarse GICP costs a KD-tree query of each per iteration."""
+        coarse = voxel_budget(scan.down, self.config.refine.coarse_voxel_m, COARSE_POINTS)
+        return small_gicp.preprocess_points(coarse.xyz, self.config.refine.coarse_voxel_m,
+                                            num_neighbors=GICP_NEIGHBORS)[0]
 
     def _view_bar(self, candidates: list[Candidate]) -> float:
         """The view agreement a building's best candidate needs for the fallbacks not to join
@@ -564,8 +570,10 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
             # that would be `ok`: an ambiguous one lists its rivals, and claims none of them either.)
             trust, status = trust_for(max(slide, 2.0 * mc.max_pose_std_m)), Status.UNCERTAIN
         # The shape alone may fit another place: a close view of a door in a corner fits every corner of the room.
-        # The colours there are the other place's (`_colours_disagree`).
-        recoloured = status == Status.OK and self._colours_disagree(scan, T, choice.center_camera, diag)
+        # The colours there are the other place's (`_chroma_rules_out`).
+        if choice.chroma is not None:
+            diag.notes.append(f"colour: the frame's chroma correlates {choice.chroma:.2f} with the map's at the answer")
+        recoloured = status == Status.OK and self._chroma_rules_out(choice.chroma)
         if recoloured:
             trust, status = 0.5 * trust, Status.UNCERTAIN
         diag.notes.append(f"trust: fitness {choice.fitness:.3f}, rmse {100 * choice.rmse_m:.2f} cm, margin "
@@ -636,19 +644,38 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
                     return True
         return False
 
-    def _colours_disagree(self, scan: Scan, T_map_camera: np.ndarray, center_camera: np.ndarray,
-                          diag: Diagnostics) -> bool:
-        """Whether the frame's colours, at a pose, fail to follow the map's: along a chroma axis both vary on, they
-        correlate less than MatchConfig.min_chroma_correlation (`RefineMap.chroma_correlation`; the fit sample of
-        the frame, within the refinement's inlier distance). The correlation, when measured, goes to the notes."""
-        mc = self.config.match
-        r = self.maps_at(T_map_camera, center_camera).refine_map.chroma_correlation(
+    def _chroma_rules_out(self, chroma: float | None) -> bool:
+        """Whether the frame's colours at a pose fail to follow the map's: along a chroma axis both vary on, they
+        correlate less than MatchConfig.min_chroma_correlation (`chroma`, `_chroma_at`'s; None: not measured)."""
+        return chroma is not None and chroma < self.config.match.min_chroma_correlation
+
+    def _chroma_at(self, scan: Scan, T_map_camera: np.ndarray, center_camera: np.ndarray) -> float | None:
+        """`RefineMap.chroma_correlation` of the frame's fit sample placed by a pose, within the refinement's inlier
+        distance, on the map of the pose's region."""
+        return self.maps_at(T_map_camera, center_camera).refine_map.chroma_correlation(
             transform_points(T_map_camera, scan.fit_xyz), scan.fit_lab, inlier_m=self.config.refine.inlier_m,
-            min_std=mc.chroma_min_std)
-        if r is None:
-            return False
-        diag.notes.append(f"colour: the frame's chroma correlates {r:.2f} with the map's at the answer")
-        return r < mc.min_chroma_correlation
+            min_std=self.config.match.chroma_min_std)
+
+    def _second_look(self, scan: Scan, candidates: list[Candidate], choice: Choice, method: str,
+                     diag: Diagnostics) -> tuple[list[Candidate], Choice]:
+        """The refined answer's colours are not the map's (`_chroma_rules_out`): the shape fits another place. The
+        label-free search's reserve leaves at which the frame's colours do follow the map's
+        (`_leaves_in_the_frames_colours`) join the candidates, and the refine stage runs again over them all (the
+        ruled-out answer among them: it may still win, and `_result` then does not claim it). A close view of a
+        door in a corner of scene0470, at a robot's height, fit a white corner 2.1 m away best (leaf score 0.94);
+        the true corner's leaf ranked 17th, and polished it fit better (0.97), its chroma correlating 0.96."""
+        leaves = self._leaves_in_the_frames_colours(scan)
+        if leaves is None:
+            return candidates, choice
+        source = self._coarse_source(scan)
+        more = [c for c in self._align(leaves, source, scan, origin="fallback:bbs")
+                if self._distinct_from_all([c.T_map_camera], [k.T_map_camera for k in candidates])[0]]
+        if not more:
+            return candidates, choice
+        diag.notes.append(f"the answer's colours are not the map's there: {len(more)} more leaves of the label-free "
+                          "search, where they are, refined too")
+        candidates = sorted(candidates + more, key=lambda c: -c.score)
+        return candidates, self._refine(scan, candidates, method, diag)
 
     def _depth_agreement(self, T_map_camera: np.ndarray, scan: Scan, center_camera: np.ndarray) -> float:
         """How the frame's depth agrees with the map's at a pose, as the answer's is measured (`_refine`, from the

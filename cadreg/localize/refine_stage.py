@@ -249,7 +249,7 @@ class RefineStage:
 
     def _choice(self, run: RefineRun, refined: list[Refined], taken_next: Candidate | None, has_rival: bool,
                 margin: float, rivals: list[Candidate] | None) -> Choice:
-        """The winner, refined[0], with its fit to the map and its agreement with the frame's depth."""
+        """The winner, refined[0], with its fit to the map and its agreement with the frame's depth and colours."""
         scan, rc, center_camera = run.scan, self.config.refine, run.center_camera
         out, winner, see = refined[0].outcome, refined[0].candidate, refined[0].see_through
         fitness, rmse = self.maps_at(out.T_map_camera, center_camera).refine_map.fitness(
@@ -265,7 +265,7 @@ class RefineStage:
                 out.T_map_camera, scan.zbuf, scan.K, scan.check_xyz)
         passed_over = winner is taken_next
         return Choice(winner, out, margin, has_rival, fitness, rmse, center_camera, run.roi_frame_points, see, agreement,
-                      coverage, rivals, passed_over)
+                      coverage, rivals, passed_over, self._chroma_at(scan, out.T_map_camera, center_camera))
 
     def _near_contender(self, candidates: list[Candidate], contenders: list[Candidate]) -> Candidate | None:
         """In one room: the best candidate within RegionConfig.contender_margin of the best's score that lies beyond

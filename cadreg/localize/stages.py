@@ -22,6 +22,7 @@ from ..site.regions import SearchRegion
 from .cluster import ScanCluster
 from .field_view import FieldView
 from .gravity import Floor
+from .match import Hypotheses
 from .points import FramePoints
 from .refine import RefineOutcome
 
@@ -52,6 +53,8 @@ class Scan:
     tied than RegionConfig.max_verified): rivals the answer did not rule out.
     view : in a building, the frame's rays and measured depth (`field_view.FieldView`): candidates there are
     ranked by how the map looks along them. None in a one-room site.
+    reserve : in a one-room site, the label-free search's next distinct leaves after those it gave as hypotheses
+    (LabelFreeConfig.reserve), unpolished: the second look's (`Localizer._second_look`); None when it did not run.
     """
 
     points: FramePoints
@@ -70,6 +73,7 @@ class Scan:
     search: SearchRegion | None = None  # the client's search region (Frame.search_region)
     unverified: list[Hypothesis] = field(default_factory=list)  # tied rooms beyond RegionConfig.max_verified
     view: FieldView | None = None
+    reserve: Hypotheses | None = None
 
     @cached_property
     def view_shares(self) -> np.ndarray:
@@ -155,6 +159,7 @@ class Choice:
     coverage: float = 1.0
     rivals: list[Candidate] | None = None
     passed_over: bool = False  # taken after every better-ranked contender saw through the map
+    chroma: float | None = None  # the frame's colours against the map's at the pose (`Localizer._chroma_at`)
 
     @property
     def support(self) -> float:
