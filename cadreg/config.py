@@ -187,15 +187,15 @@ class MatchConfig(_Section):
     slide_agreement_drop: float = Field(0.01, ge=0, le=1, description="... and loses no more than this of its depth "
                                         "agreement fits as well there: the pose slides, and is uncertain")
     # Chroma only (CIE a*, b*): lightness follows shading, exposure and highlights. Right `ok` answers kept at
-    # least 0.39 (7-Scenes, colour a few pixels off the depth) and 0.76 (renders of scans); three confident wrong
-    # answers at a robot's height, a close view of the orange door in the wrong white corner, had -0.45 to -0.13.
-    min_chroma_correlation: float = Field(0.15, ge=-1, le=1, description="a pose at which the frame's colours "
-                                          "correlate with the map's less than this along a chroma axis (a*, b*) "
-                                          "that varies in both (chroma_min_std) is uncertain: the frame shows "
-                                          "another place of the same shape")
-    chroma_min_std: float = Field(3.0, ge=0, description="a chroma axis counts only where the frame's colours and "
-                                  "the map's both spread at least this much along it (CIE Lab units): a grey room's "
-                                  "colour is sensor noise, and a map without colour says nothing")
+    # least 0.61 (7-Scenes, colour a few pixels off the depth) and 0.80 (renders of scans); three confident wrong
+    # answers at a robot's height, close views of the orange door placed in another, white corner, had -0.41 to
+    # -0.02.
+    min_chroma_correlation: float = Field(0.25, ge=-1, le=1, description="a pose at which the chroma (a*, b*) of "
+                                          "the frame's colours correlates with the map's less than this is "
+                                          "uncertain: the frame shows another place of the same shape")
+    chroma_min_std: float = Field(3.0, ge=0, description="the correlation is taken only where the frame's chroma and "
+                                  "the map's both spread at least this much (CIE Lab units, both axes together): a "
+                                  "grey room's chroma is sensor noise, and a map without colour says nothing")
     refine_points: int = Field(1500, ge=100, description="frame points (after the refinement's voxel grid) one fine "
                                "refinement uses at most: its cost is bounded by points × iterations × contenders")
     distinct_translation_m: float = Field(0.3, gt=0)

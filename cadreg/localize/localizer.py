@@ -663,7 +663,7 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         (`_leaves_in_the_frames_colours`) join the candidates, and the refine stage runs again over them all (the
         ruled-out answer among them: it may still win, and `_result` then does not claim it). A close view of a
         door in a corner of scene0470, at a robot's height, fit a white corner 2.1 m away best (leaf score 0.94);
-        the true corner's leaf ranked 17th, and polished it fit better (0.97), its chroma correlating 0.96."""
+        the true corner's leaf ranked 17th, and polished it fit better (0.97), its chroma correlating 0.97."""
         leaves = self._leaves_in_the_frames_colours(scan)
         if leaves is None:
             return candidates, choice

@@ -50,18 +50,18 @@ REACH_MARGIN_M = 0.25
 
 
 def chroma_correlation(frame_lab: np.ndarray, map_lab: np.ndarray, min_std: float) -> float | None:
-    """The least Pearson correlation, over the chroma axes (CIE a*, b*) along which both (n, 3) Lab colour sets
-    spread at least `min_std`, between a frame's colours and the map's at the same points; None when neither axis
-    spreads so in both. A correlation, not a colour distance: a sensor's exposure and white balance scale and shift
-    a chroma axis, and the map's colours were fused from other frames (or another sensor)."""
-    least = None
-    for axis in (1, 2):
-        f, m = frame_lab[:, axis], map_lab[:, axis]
-        if f.std() < min_std or m.std() < min_std:
-            continue
-        r = float(np.corrcoef(f, m)[0, 1])
-        least = r if least is None else min(least, r)
-    return least
+    """The correlation of a frame's chroma with the map's at the same points ((n, 3) CIE Lab each): of the (a*, b*)
+    vectors about their means, Σ (f − f̄)·(m − m̄) / √(Σ |f − f̄|² · Σ |m − m̄|²); None when either side's chroma
+    spreads less than `min_std` (the root of the two axes' variances). A correlation, not a colour distance: a
+    sensor's exposure and white balance scale and shift the chroma axes, and the map's colours were fused from
+    other frames (or another sensor). One correlation of both axes, not one an axis: an axis along which one side
+    barely varies (sensor noise) weighs as little as it varies."""
+    f = frame_lab[:, 1:] - frame_lab[:, 1:].mean(axis=0)
+    m = map_lab[:, 1:] - map_lab[:, 1:].mean(axis=0)
+    f_var, m_var = float(np.sum(f * f)), float(np.sum(m * m))
+    if min(f_var, m_var) < len(f) * min_std ** 2:
+        return None
+    return float(np.sum(f * m) / np.sqrt(f_var * m_var))
 
 
 def crop_to_roi(points: FramePoints, radius_m: float,
@@ -249,9 +249,9 @@ class RefineMap:
 
     def chroma_correlation(self, xyz_map: np.ndarray, lab: np.ndarray, *, inlier_m: float,
                            min_std: float) -> float | None:
-        """The least correlation, over the chroma axes (CIE a*, b*) along which the frame's inliers and their map
-        points both spread at least `min_std`, between the frame's colours and the map's (`chroma_correlation`);
-        None when no axis spreads so, or fewer than MIN_COLOR_PAIRS points are inliers.
+        """The correlation of the chroma (CIE a*, b*) of the frame's inliers with their map points'
+        (`chroma_correlation`); None when either spreads less than `min_std`, or fewer than MIN_COLOR_PAIRS points
+        are inliers.
         xyz_map (n, 3) frame points placed in the map; lab (n, 3) their CIE Lab colours (`Scan.fit_lab`)."""
         d, nn = self.fit_tree.query(xyz_map, k=1, distance_upper_bound=inlier_m)
         ok = np.isfinite(d)
