@@ -158,3 +158,32 @@ def test_a_float_field_and_a_stored_read_only_one_render_and_score_alike(scene, 
     s_float, s_stored = score_poses(floats, pts, R, t, tau_m=0.1), score_poses(stored, pts, R, t, tau_m=0.1)
     assert s_float[0] > 0.8 > s_float[1] and s_float[2] == 0.0
     assert np.allclose(s_float, s_stored, atol=0.05)
+
+
+def test_a_surface_nearer_than_the_sensor_sees_hides_what_lies_behind_it() -> None:
+    """A camera 30 cm from a wall that fills the left half of its view, a second wall 1.5 m ahead: the sensor
+    measures nothing on the left (nearer than its 0.4 m) and 1.5 m on the right. The map along the rays shows the
+    same: the near wall is no measurement, and it hides the far wall behind it. (Traced from 0.4 m on, the rays
+    passed the near wall and met the far one: a view close to a room's wall saw the corridor behind it, and copies
+    of a room with different neighbours looked 0.1 of view agreement apart.)"""
+    from cadreg.camera import CameraIntrinsics
+    from cadreg.frame import Frame
+
+    step = 0.01
+    a, b = np.meshgrid(np.arange(-1.5, 1.5, step), np.arange(-1.5, 1.5, step))
+    near = np.column_stack([a.ravel(), b.ravel(), np.full(a.size, 0.3)])
+    near = near[near[:, 0] < -0.02]  # the left half of the view
+    far = np.column_stack([a.ravel(), b.ravel(), np.full(a.size, 1.5)])
+    field = DistanceField.from_grid(building_field([np.concatenate([near, far])]))
+    K = CameraIntrinsics(160, 120, 140.0, 140.0, 79.5, 59.5)
+    u = np.arange(K.width)
+    depth = np.where(u < K.cx, 0, 1500).astype(np.uint16)[None, :].repeat(K.height, axis=0)
+    frame = Frame(depth=depth, color=np.zeros((K.height, K.width, 3), np.uint8), depth_intrinsics=K,
+                  color_intrinsics=K)
+    view = FieldView(frame, grid=(16, 12))
+    rendered = view.render(field, np.eye(4))[0]
+    left = view.dirs_camera[:, 0] < -0.1  # rays that meet the near wall
+    right = view.dirs_camera[:, 0] > 0.0
+    assert np.isinf(view.measured[left]).all() and np.isinf(rendered[left]).all()
+    assert np.abs(rendered[right] - 1.5).max() < 0.05
+    assert view.agreement(rendered[None])[0] > 0.95

@@ -139,9 +139,11 @@ def quantized_scores(scale: float, tau: float) -> np.ndarray:
 def trace(grid, scale, origin, voxel, hi, strides, R, t, origin_camera, dirs_camera, min_depth, max_depth,
           safety, min_step, max_steps, hit_offset, out):
     """out[h, r] = depth (per unit of the ray's direction) of the first occupied cell (distance 0) along ray r at
-    pose h, plus hit_offset; inf when none lies within max_depth or max_steps steps. Each step advances by the
-    cell's distance less `safety` metres, at least `min_step` metres, over the ray's length per unit depth.
-    R : (h, 3, 3); t : (h, 3); origin_camera : (3,); dirs_camera : (r, 3), per unit depth."""
+    pose h, plus hit_offset; inf when none lies within max_depth or max_steps steps, and when the first lies nearer
+    than min_depth: the sensor measures nothing there, and what lies behind it is hidden (a ray traced from
+    min_depth on saw through a wall a camera stood close to, into the corridor or the room behind it). Each step
+    advances by the cell's distance less `safety` metres, at least `min_step` metres, over the ray's length per
+    unit depth. R : (h, 3, 3); t : (h, 3); origin_camera : (3,); dirs_camera : (r, 3), per unit depth."""
     n_rays = len(dirs_camera)
     n = len(R) * n_rays
     # Rays advance in batches, a step of each live ray of a batch at a time: a ray's next read waits on its last,
@@ -166,7 +168,7 @@ def trace(grid, scale, origin, voxel, hi, strides, R, t, origin_camera, dirs_cam
             for a in range(3):  # the ray in cell units from here on (`_cell_of_units`)
                 o[j, a] = (o[j, a] - origin[a]) * inv + 1.0
                 d[j, a] *= inv
-            depth[j] = min_depth
+            depth[j] = 0.0
             live[j] = j
             flat_out[first + j] = np.inf
         n_live = count
@@ -182,7 +184,8 @@ def trace(grid, scale, origin, voxel, hi, strides, R, t, origin_camera, dirs_cam
                 j = live[q]
                 dist = grid[cells[q]] * scale
                 if dist <= 1e-6:
-                    flat_out[first + j] = depth[j] + hit_offset
+                    if depth[j] + hit_offset >= min_depth:
+                        flat_out[first + j] = depth[j] + hit_offset
                     continue
                 depth[j] += max(dist - safety, min_step) / per_depth[j]
                 if depth[j] <= max_depth:
