@@ -645,8 +645,8 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         return False
 
     def _chroma_rules_out(self, chroma: float | None) -> bool:
-        """Whether the frame's colours at a pose fail to follow the map's: along a chroma axis both vary on, they
-        correlate less than MatchConfig.min_chroma_correlation (`chroma`, `_chroma_at`'s; None: not measured)."""
+        """Whether the frame's colours at a pose fail to follow the map's: their chroma correlates with the map's less
+        than MatchConfig.min_chroma_correlation (`chroma`, `_chroma_at`'s; None: not measured, nothing concluded)."""
         return chroma is not None and chroma < self.config.match.min_chroma_correlation
 
     def _chroma_at(self, scan: Scan, T_map_camera: np.ndarray, center_camera: np.ndarray) -> float | None:

@@ -141,6 +141,8 @@ class Choice:
         depth_agreement : share of the view's cells, among those holding both, where measured depth and map agree
         (`score.ViewCheck.depth_agreement`; 1.0 without a z-buffer); coverage : share of `Scan.check_xyz` whose
         view cell holds some map surface at the pose (`score.ViewCheck.compare_depth`; 1.0 without a z-buffer).
+    chroma : the correlation of the frame's chroma with the map's at the pose (`Localizer._chroma_at`), None
+        where either is too grey to tell.
     rivals : in a building, the distinct candidates the answer cannot be told from (their view agreement within
         the ambiguity margin of the answer's, or the map showing the same along the frame's rays at both poses:
         `Localizer._view_rivals`); None in a one-room site, whose rivals are the candidates within the margin.
@@ -159,7 +161,7 @@ class Choice:
     coverage: float = 1.0
     rivals: list[Candidate] | None = None
     passed_over: bool = False  # taken after every better-ranked contender saw through the map
-    chroma: float | None = None  # the frame's colours against the map's at the pose (`Localizer._chroma_at`)
+    chroma: float | None = None
 
     @property
     def support(self) -> float:
