@@ -187,9 +187,8 @@ class MatchConfig(_Section):
     slide_agreement_drop: float = Field(0.01, ge=0, le=1, description="... and loses no more than this of its depth "
                                         "agreement fits as well there: the pose slides, and is uncertain")
     # Chroma only (CIE a*, b*): lightness follows shading, exposure and highlights. Right `ok` answers kept at
-    # least 0.61 (7-Scenes, colour a few pixels off the depth), 0.70 (3DMatch) and 0.80 (renders of scans); three
-    # confident wrong answers at a robot's height, close views of the orange door placed in another, white corner,
-    # had -0.41 to -0.02.
+    # least 0.62 (7-Scenes, colour a few pixels off the depth) and 0.72 (3DMatch); three confident wrong answers at
+    # a robot's height, close views of the orange door placed in another, white corner, had -0.44 to -0.07.
     min_chroma_correlation: float = Field(0.25, ge=-1, le=1, description="a pose at which the chroma (a*, b*) of "
                                           "the frame's colours correlates with the map's less than this is "
                                           "uncertain: the frame shows another place of the same shape")

@@ -9,7 +9,7 @@ from cadreg.camera import CameraIntrinsics
 from cadreg.errors import InvalidFrame
 from cadreg.frame import Frame
 from cadreg.geometry import make_T
-from cadreg.localize.points import _project_to_color, frame_to_points, voxel_downsample, voxel_indices
+from cadreg.localize.points import _project_to_color, frame_to_points, voxel_downsample, voxel_indices, window_colours
 
 
 def _plane_frame(depth_m: float = 2.0, *, color_size=(64, 48), T_color_depth=None) -> Frame:
@@ -43,6 +43,23 @@ def test_colour_and_label_read_in_a_larger_colour_image() -> None:
     right = p.xyz[:, 0] > 0.05
     assert np.allclose(p.rgb[left], [1, 0, 0]) and np.allclose(p.rgb[right], [0, 0, 1])
     assert np.all(p.labels[left] == 0) and np.all(p.labels[right] == 5)
+
+
+def test_window_colours_average_the_pixels_about_each_points_own() -> None:
+    f = _plane_frame(2.0, color_size=(64, 48))
+    rng = np.random.default_rng(0)
+    noisy = np.clip(f.color.astype(np.float64) * 0.5 + 64 + rng.normal(0, 20, f.color.shape), 0, 255).astype(np.uint8)
+    f = Frame(depth=f.depth, color=noisy, labels=f.labels, depth_intrinsics=f.depth_intrinsics,
+              color_intrinsics=f.color_intrinsics)
+    p = frame_to_points(f, pixel_stride=1)
+    mean = window_colours(f, p.xyz, 2)
+    inner = np.abs(p.xyz[:, 0]) > 0.4  # windows that stay on one half
+    truth = np.where(p.xyz[inner, :1] < 0, [191.5, 64, 64], [64, 64, 191.5]) / 255.0
+    # a 5 × 5 window's noise is a fifth of one pixel's
+    assert np.std(mean[inner] - truth) < 0.35 * np.std(p.rgb[inner] - truth)
+    assert np.abs(np.mean(mean[inner] - truth)) < 0.01
+    # windows at the image's border are clipped to it, and every point has its mean
+    assert mean.shape == p.rgb.shape and np.all((mean >= 0) & (mean <= 1))
 
 
 def test_depth_to_colour_extrinsic_moves_points() -> None:

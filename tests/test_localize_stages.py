@@ -157,6 +157,7 @@ def test_an_objects_share_of_the_view_counts_pixels_not_voxel_points() -> None:
     index = [np.arange(len(near)), len(near) + np.arange(len(far))]
     clusters = [ScanCluster(0, xyz[i].mean(axis=0), xyz[i].mean(axis=0), np.ptp(xyz[i], axis=0), i) for i in index]
     scan = Scan(down, down, np.zeros(len(xyz), dtype=np.int64), clusters, None, score_xyz=xyz, fit_xyz=xyz,
-                fit_lab=np.zeros_like(xyz), fit_cls=np.zeros(len(xyz), dtype=np.int64), check_xyz=xyz)
+                fit_lab=np.zeros_like(xyz), fit_cls=np.zeros(len(xyz), dtype=np.int64), fit_rgb=np.zeros_like(xyz),
+                check_xyz=xyz)
     assert len(far) > 8 * len(near)
     np.testing.assert_allclose(scan.view_shares, [0.5, 0.5], atol=0.01)

@@ -21,10 +21,19 @@ from .points import voxel_indices
 
 def rgb_to_lab(rgb: np.ndarray) -> np.ndarray:
     """(n, 3) sRGB in [0, 1] -> (n, 3) CIE L*a*b* (D65), L in [0, 100]."""
+    return linear_to_lab(srgb_to_linear(rgb))
+
+
+def srgb_to_linear(rgb: np.ndarray) -> np.ndarray:
+    """(n, 3) sRGB in [0, 1] -> (n, 3) linear light (the sRGB transfer curve undone)."""
     rgb = np.asarray(rgb, dtype=np.float64)
-    lin = np.where(rgb > 0.04045, ((rgb + 0.055) / 1.055) ** 2.4, rgb / 12.92)
+    return np.where(rgb > 0.04045, ((rgb + 0.055) / 1.055) ** 2.4, rgb / 12.92)
+
+
+def linear_to_lab(lin: np.ndarray) -> np.ndarray:
+    """(n, 3) linear-light RGB (sRGB primaries) -> (n, 3) CIE L*a*b* (D65), L in [0, 100]."""
     M = np.array([[0.4124564, 0.3575761, 0.1804375], [0.2126729, 0.7151522, 0.0721750], [0.0193339, 0.1191920, 0.9503041]])
-    xyz = lin @ M.T / np.array([0.95047, 1.0, 1.08883])
+    xyz = np.asarray(lin, dtype=np.float64) @ M.T / np.array([0.95047, 1.0, 1.08883])
     f = np.where(xyz > 216 / 24389, np.cbrt(xyz), (24389 / 27 * xyz + 16) / 116)
     return np.stack([116 * f[:, 1] - 16, 500 * (f[:, 0] - f[:, 1]), 200 * (f[:, 1] - f[:, 2])], axis=1)
 

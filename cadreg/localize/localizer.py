@@ -44,7 +44,7 @@ from .twins import SHAPE_POINTS, RoomTwins
 from .gravity import estimate_floor, map_floor_height, map_up_axis, planar_normals
 from .match import (Hypotheses, MapGraph, distinct_best, distinct_pairs, gravity_hypotheses, kabsch_hypotheses,
                     score_graph)
-from .points import frame_to_points, voxel_budget, voxel_downsample
+from .points import frame_to_points, voxel_budget, voxel_downsample, window_colours
 from .refine import GICP_NEIGHBORS, REFINE_METHODS, RefineMap
 from .refine_stage import RefineStage
 from .regions import RegionIndex, RegionMaps, region_cloud
@@ -68,6 +68,9 @@ FALLBACKS = ("bbs", "fpfh-ransac")
 # an eighth (verify is 8 coarse GICPs), with the same answers there and on 7-Scenes, and 3 more right poses in the
 # 10-room building.
 COARSE_POINTS = 600
+# The colour gate reads each of its points' colour as the mean of this many pixels each way about its own (5 × 5):
+# one pixel's colour is noise enough to hide a grey room's chroma (`points.window_colours`).
+COLOUR_WINDOW = 2
 # A hypothesis whose coarse GICP would hand over more than this share of its points far from the map gets a cloud
 # of the others (`_coarse_align`): rebuilding one costs 0.5 ms, so hypotheses with a few far points keep the shared one.
 COARSE_FAR_SHARE = 0.25
@@ -294,6 +297,7 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         check = rng.choice(len(points), min(fc.check_points, len(points)), replace=False)
         return Scan(points, down, class_index, clusters, floor, score_xyz=down.xyz[score], fit_xyz=down.xyz[fit],
                     fit_lab=rgb_to_lab(down.rgb[fit]), fit_cls=class_index[fit] if labelled.any() else None,
+                    fit_rgb=window_colours(frame, down.xyz[fit], COLOUR_WINDOW),
                     check_xyz=points.xyz[check],
                     zbuf=ViewCheck.zbuffer(down.xyz, frame.depth_intrinsics), K=frame.depth_intrinsics,
                     center_camera=points.xyz.mean(axis=0), search=frame.search_region,
@@ -653,7 +657,7 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         """`RefineMap.chroma_correlation` of the frame's fit sample placed by a pose, within the refinement's inlier
         distance, on the map of the pose's region."""
         return self.maps_at(T_map_camera, center_camera).refine_map.chroma_correlation(
-            transform_points(T_map_camera, scan.fit_xyz), scan.fit_lab, inlier_m=self.config.refine.inlier_m,
+            transform_points(T_map_camera, scan.fit_xyz), scan.fit_rgb, inlier_m=self.config.refine.inlier_m,
             min_std=self.config.match.chroma_min_std)
 
     def _second_look(self, scan: Scan, candidates: list[Candidate], choice: Choice, method: str,

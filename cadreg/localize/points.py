@@ -65,6 +65,20 @@ def frame_to_points(frame: Frame, *, pixel_stride: int = 2, min_depth_m: float =
     return FramePoints(xyz, rgb, labels)
 
 
+def window_colours(frame: Frame, xyz_camera: np.ndarray, half: int) -> np.ndarray:
+    """(n, 3) float64 in [0, 1]: the mean colour of the (2·half + 1)² colour pixels about each point's own
+    (xyz_camera (n, 3), colour-camera frame, points of `frame_to_points`), clipped to the image: one pixel's colour
+    carries the sensor's noise, which a neighbourhood averages out."""
+    C = frame.color_intrinsics
+    z = np.maximum(xyz_camera[:, 2], 1e-6)
+    u = np.clip(np.rint(C.fx * xyz_camera[:, 0] / z + C.cx).astype(np.intp), 0, C.width - 1)
+    v = np.clip(np.rint(C.fy * xyz_camera[:, 1] / z + C.cy).astype(np.intp), 0, C.height - 1)
+    steps = np.arange(-half, half + 1)
+    uu = np.clip(u[:, None, None] + steps[None, None, :], 0, C.width - 1)
+    vv = np.clip(v[:, None, None] + steps[None, :, None], 0, C.height - 1)
+    return frame.color[vv, uu].reshape(len(u), -1, 3).mean(axis=1) / 255.0
+
+
 def _registered(frame: Frame) -> bool:
     return frame.color_intrinsics == frame.depth_intrinsics and bool(np.array_equal(frame.T_color_depth, np.eye(4)))
 

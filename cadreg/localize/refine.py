@@ -17,7 +17,7 @@ import small_gicp
 
 from ..errors import InvalidArgument
 from ..geometry import transform_points
-from .color_gicp import ColorGicpTarget, color_gicp, prepare_cloud, rgb_to_lab
+from .color_gicp import ColorGicpTarget, color_gicp, linear_to_lab, prepare_cloud, rgb_to_lab, srgb_to_linear
 from .grid_gicp import MapNormals, gicp, plane_normals
 from .point_tree import PointTree, tree_order
 from .points import FramePoints, voxel_indices
@@ -49,15 +49,22 @@ WIDE_PASS = 2.5
 REACH_MARGIN_M = 0.25
 
 
-def chroma_correlation(frame_lab: np.ndarray, map_lab: np.ndarray, min_std: float) -> float | None:
-    """The correlation of a frame's chroma with the map's at the same points ((n, 3) CIE Lab each): of the (a*, b*)
-    vectors about their means, Σ (f − f̄)·(m − m̄) / √(Σ |f − f̄|² · Σ |m − m̄|²); None when either side's chroma
-    spreads less than `min_std` (the root of the two axes' variances). A correlation, not a colour distance: a
-    sensor's exposure and white balance scale and shift the chroma axes, and the map's colours were fused from
-    other frames (or another sensor). One correlation of both axes, not one an axis: an axis along which one side
-    barely varies (sensor noise) weighs as little as it varies."""
-    f = frame_lab[:, 1:] - frame_lab[:, 1:].mean(axis=0)
-    m = map_lab[:, 1:] - map_lab[:, 1:].mean(axis=0)
+def chroma_correlation(frame_rgb: np.ndarray, map_rgb: np.ndarray, min_std: float) -> float | None:
+    """The correlation of a frame's chroma with the map's at the same points ((n, 3) sRGB in [0, 1] each): the
+    frame's white balance matched to the map's first (a gain per channel, in linear light, least squares), then of
+    the CIE (a*, b*) vectors about their means, Σ (f − f̄)·(m − m̄) / √(Σ |f − f̄|² · Σ |m − m̄|²); None when either
+    side's chroma spreads less than `min_std` (the root of the two axes' variances).
+    A correlation, not a colour distance: exposure and the camera's tone curve scale and bend the chroma axes, and
+    the map's colours were fused from other frames (or another sensor). A white balance off by a gain per channel
+    tints each surface by as much as it is bright, and the shading of a grey room then reads as chroma the map does
+    not have: matched first (renders of scene0470 with each channel's gain off by up to 25 %, tone curve, blur,
+    noise and colour 6 px off the depth: right poses below 0.25, 16 % -> 3 %). One correlation of both axes, not one
+    an axis: an axis along which one side barely varies weighs as little as it varies."""
+    f_lin, m_lin = srgb_to_linear(frame_rgb), srgb_to_linear(map_rgb)
+    gain = np.sum(f_lin * m_lin, axis=0) / np.maximum(np.sum(m_lin * m_lin, axis=0), 1e-12)
+    f = linear_to_lab(f_lin / np.maximum(gain, 1e-6))[:, 1:]
+    m = linear_to_lab(m_lin)[:, 1:]
+    f, m = f - f.mean(axis=0), m - m.mean(axis=0)
     f_var, m_var = float(np.sum(f * f)), float(np.sum(m * m))
     if min(f_var, m_var) < len(f) * min_std ** 2:
         return None
@@ -247,24 +254,18 @@ class RefineMap:
         col = float(np.exp(-(dE / color_scale) ** 2).mean())
         return float(ok.mean()), sem, col
 
-    def chroma_correlation(self, xyz_map: np.ndarray, lab: np.ndarray, *, inlier_m: float,
+    def chroma_correlation(self, xyz_map: np.ndarray, rgb: np.ndarray, *, inlier_m: float,
                            min_std: float) -> float | None:
-        """The correlation of the chroma (CIE a*, b*) of the frame's inliers with their map points'
-        (`chroma_correlation`); None when either spreads less than `min_std`, or fewer than MIN_COLOR_PAIRS points
-        are inliers.
-        xyz_map (n, 3) frame points placed in the map; lab (n, 3) their CIE Lab colours (`Scan.fit_lab`)."""
+        """The correlation of the chroma of the frame's inliers with their map points' (`chroma_correlation`); None
+        when either spreads less than `min_std`, or fewer than MIN_COLOR_PAIRS points are inliers.
+        xyz_map (n, 3) frame points placed in the map; rgb (n, 3) their colours, sRGB in [0, 1] (`Scan.fit_rgb`)."""
         d, nn = self.fit_tree.query(xyz_map, k=1, distance_upper_bound=inlier_m)
         ok = np.isfinite(d)
         if ok.sum() < MIN_COLOR_PAIRS:
             return None
         nn = nn[ok]
-        # Only these points' colours converted when the whole fitness grid's are not at hand (a building's region
-        # maps: `fit_lab`).
-        if self._fit_lab is not None:
-            map_lab = self._fit_lab[nn]
-        else:
-            map_lab = rgb_to_lab(self.rgb[nn if isinstance(self._fit_keep, slice) else self._fit_keep[nn]])
-        return chroma_correlation(lab[ok], map_lab, min_std)
+        return chroma_correlation(rgb[ok], self.rgb[nn if isinstance(self._fit_keep, slice) else self._fit_keep[nn]],
+                                  min_std)
 
     def coarse_align(self, source: small_gicp.PointCloud, init_T_map_camera: np.ndarray, *,
                      max_correspondence_m: float = 0.3, max_iterations: int = 20) -> np.ndarray:

@@ -44,6 +44,8 @@ class Scan:
     fit_xyz, fit_lab, fit_cls : a sample of `down` (≤ fit_points): positions, CIE Lab colours, class index, for
         the label and colour agreement that ranks coarse-aligned candidates; fit_cls None for a frame that
         carries no labels (nothing to agree or disagree with the map's classes).
+    fit_rgb : (len(fit_xyz), 3) colours of fit_xyz, each the mean of the colour pixels about its own
+        (`points.window_colours`): what the colour gate compares with the map's (`Localizer._chroma_at`).
     check_xyz : (≤ check_points, 3) float64 sample of `points` for the final fitness.
     zbuf : coarse z-buffer of `points` (`score.ViewCheck.zbuffer`) for the free-space check; K : the depth
         intrinsics it was projected with. None for scans built without a frame.
@@ -66,6 +68,7 @@ class Scan:
     fit_xyz: np.ndarray
     fit_lab: np.ndarray
     fit_cls: np.ndarray | None
+    fit_rgb: np.ndarray
     check_xyz: np.ndarray
     zbuf: np.ndarray | None = None
     K: object | None = None
