@@ -47,6 +47,7 @@ from scipy.spatial.transform import Rotation
 from .errors import InvalidArgument
 from .frame import Frame
 from .geometry import invert_T, pose_errors, transform_points
+from .color_noise import ColorNoise, corrupt_colors
 from .label_noise import LabelNoise, corrupt_labels
 from .labels import is_object_class
 from .localize.localizer import Localizer
@@ -162,11 +163,13 @@ def perturb(T: np.ndarray, rng: np.random.Generator, *, translation_m: float = 0
 class Bench:
     """Runs methods on frames; one Localizer serves every cadreg method."""
 
-    def __init__(self, site, localizer: Localizer, *, seed: int = 0, label_noise: LabelNoise | None = None) -> None:
+    def __init__(self, site, localizer: Localizer, *, seed: int = 0, label_noise: LabelNoise | None = None,
+                 color_noise: ColorNoise | None = None) -> None:
         self.site = site
         self.localizer = localizer
         self.seed = seed
         self.label_noise = label_noise
+        self.color_noise = color_noise
         self._fit_cache: tuple | None = None
         self._kiss = None
 
@@ -180,6 +183,13 @@ class Bench:
         ids = np.array(sorted(i for i, c in self.site.label_maps.get(frame.label_set, {}).items()
                               if is_object_class(c) and c in known), dtype=np.int64)
         return corrupt_labels(frame.labels, self.label_noise, ids, np.random.default_rng([self.seed, index, 1]))
+
+    def colors_of(self, index: int, frame: Frame) -> np.ndarray:
+        """The colour image every method is given: the frame's, with `color_noise`'s faults when set (drawn from a
+        generator seeded by the bench's seed and the frame's index)."""
+        if self.color_noise is None:
+            return frame.color
+        return corrupt_colors(frame.color, self.color_noise, np.random.default_rng([self.seed, index, 2]))
 
     def kiss(self):
         """The KISS-Matcher peer (InvalidArgument with the install hint when the extra is missing)."""
@@ -196,6 +206,8 @@ class Bench:
         stage_ms: dict[str, float] = {}
         trust = float("nan")
         reported: list[np.ndarray] = []  # the answer and every hypothesis, by pose
+        if self.color_noise is not None:
+            frame = replace(frame, color=self.colors_of(index, frame))
         if method == "kiss-matcher":
             self.kiss()  # the map side is prepared once, outside the frame's time, as fpfh-ransac's features are
             t0 = time.perf_counter()
@@ -387,20 +399,22 @@ def summarize(outcomes: list[FrameOutcome]) -> dict:
 def run_bench(site, frames, methods: list[str], *, localizer: Localizer | None = None, limit: int | None = None,
               seed: int = 0, progress: Callable[[int, int], None] | None = None,
               warn: Callable[[str], None] | None = None, views: dict[int, ViewTruth] | None = None,
-              truth: dict[int, np.ndarray] | None = None, label_noise: LabelNoise | None = None) -> dict:
+              truth: dict[int, np.ndarray] | None = None, label_noise: LabelNoise | None = None,
+              color_noise: ColorNoise | None = None) -> dict:
     """Run `methods` on every frame of `frames` (a RecordedFrames) that has a ground-truth pose. `views`: what a
     building's views.json says of the frames (`views_from_doc`), for the unique / repeated figures. `truth`: frame
     index -> T_map_camera to judge by instead of the recorded poses (where the map puts each frame, when a
     dataset's poses drift from the map: `site.fuse.pose_offset_by_window`); frames it lacks are skipped.
     `label_noise`: a segmenter's errors in the labels the labelled methods are given (`Bench.labels_of`).
+    `color_noise`: a camera's colour faults in the colour every method is given (`Bench.colors_of`).
 
-    Returns {"frames": N, "skipped": [...], "methods": {name: summary}}, and "label_noise" (its settings) when
-    given.
+    Returns {"frames": N, "skipped": [...], "methods": {name: summary}}, and "label_noise" and "color_noise" (their
+    settings) when given.
     """
     for m in methods:
         check_method(m)
     localizer = localizer or Localizer.from_site(site)
-    bench = Bench(site, localizer, seed=seed, label_noise=label_noise)
+    bench = Bench(site, localizer, seed=seed, label_noise=label_noise, color_noise=color_noise)
     if "kiss-matcher" in methods:
         bench.kiss()  # a missing extra fails here, with its install hint, before any frame runs
     indices = list(frames.indices)
@@ -433,6 +447,8 @@ def run_bench(site, frames, methods: list[str], *, localizer: Localizer | None =
     report = {"frames": n, "skipped": skipped, "methods": {m: summarize(o) for m, o in outcomes.items()}}
     if label_noise is not None:
         report["label_noise"] = label_noise.as_dict()
+    if color_noise is not None:
+        report["color_noise"] = color_noise.as_dict()
     return report
 
 
@@ -443,7 +459,9 @@ def format_table(report: dict) -> str:
 
     lines = [f"frames: {report['frames']}" + (f" (skipped without pose: {len(report['skipped'])})" if report["skipped"] else "")
              + ("" if "label_noise" not in report else "; labels with noise "
-                + ", ".join(f"{k} {v}" for k, v in report["label_noise"].items() if v))]
+                + ", ".join(f"{k} {v}" for k, v in report["label_noise"].items() if v))
+             + ("" if "color_noise" not in report else "; colour with a camera's faults "
+                + ", ".join(f"{k} {v}" for k, v in report["color_noise"].items() if v))]
     head = (f"{'method':34s} {'@5cm/5°':>8s} {'@10cm/10°':>9s} {'med t cm':>8s} {'p90 t cm':>8s} {'med r °':>7s} "
             f"{'p90 r °':>7s} {'med ms':>7s} {'p90 ms':>7s} {'p99 ms':>7s} {'max ms':>7s} {'ok prec':>7s} {'bad ok':>6s}  statuses")
     lines.append(head)

@@ -39,8 +39,12 @@ def register(sub) -> None:
                    help="a segmenter's errors in the labels the labelled methods get, seeded per frame (label_noise.py): "
                         "mild = boundaries misregistered by up to 3 px and bleeding; harsh = 6 px, classes swapped "
                         "(15 %%) and missed (20 %%), false blobs and 5 %% speckle (default: none, the frames' labels)")
+    p.add_argument("--color-noise", choices=("none", "camera"), default="none",
+                   help="a camera's colour faults in the colour every method gets, seeded per frame (color_noise.py): "
+                        "camera = exposure 0.6-1.4, white balance 1 ± 0.25 a channel, tone curve γ 0.6-1.6, offsets "
+                        "up to 8 %%, blur up to 2.5 px, colour up to 6 px off the depth, noise σ 3 %% (default: none)")
     p.add_argument("--seed", type=int, default=0, help="seed of the perturbations of refine-from-gt-perturbed "
-                   "and of the label noise")
+                   "and of the label and colour noise")
     p.add_argument("--json", type=Path, default=None, help="write the report as JSON here")
     p.set_defaults(func=run)
 
@@ -67,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
 
     from ..config import LocalizeConfig, RefineConfig, load_localize_config
     from ..errors import ConfigError
+    from ..color_noise import COLOR_NOISE_PRESETS
     from ..label_noise import LABEL_NOISE_PRESETS
 
     site = Site.load(args.site)
@@ -91,8 +96,10 @@ def run(args: argparse.Namespace) -> int:
     views = read_views(args.frames)
     truth = None if args.truth is None else read_indexed_poses(args.truth)
     noise = None if args.label_noise == "none" else LABEL_NOISE_PRESETS[args.label_noise]
+    color_noise = None if args.color_noise == "none" else COLOR_NOISE_PRESETS[args.color_noise]
     report = run_bench(site, frames, methods, localizer=localizer, limit=args.limit, seed=args.seed,
-                       progress=progress, warn=log.warning, views=views, truth=truth, label_noise=noise)
+                       progress=progress, warn=log.warning, views=views, truth=truth, label_noise=noise,
+                       color_noise=color_noise)
     bar.close()
     print(format_table(report))
     if args.json:
