@@ -202,19 +202,22 @@ class Bench:
     def run_one(self, method: str, index: int, frame: Frame, T_true: np.ndarray) -> FrameOutcome:
         loc = self.localizer
         rc = loc.config.refine
+        # What the method is given, made outside the frame's time: the colour with a camera's faults, the labels
+        # with a segmenter's errors (each costs a few image passes, which a client's frame does not).
+        if self.color_noise is not None:
+            frame = replace(frame, color=self.colors_of(index, frame))
+        if method.startswith("cadreg"):
+            given = replace(frame, labels=None if method == "cadreg-nolabels" else self.labels_of(index, frame))
         t0 = time.perf_counter()
         stage_ms: dict[str, float] = {}
         trust = float("nan")
         reported: list[np.ndarray] = []  # the answer and every hypothesis, by pose
-        if self.color_noise is not None:
-            frame = replace(frame, color=self.colors_of(index, frame))
         if method == "kiss-matcher":
             self.kiss()  # the map side is prepared once, outside the frame's time, as fpfh-ransac's features are
             t0 = time.perf_counter()
         if method.startswith("cadreg"):
             refine = method.split(":", 1)[1] if ":" in method else None
-            f = replace(frame, labels=None if method == "cadreg-nolabels" else self.labels_of(index, frame))
-            res = loc.localize(f, method=refine)
+            res = loc.localize(given, method=refine)
             T, status, stage_ms = res.T_map_camera, res.status.value, dict(res.diagnostics.stage_ms)
             trust = float(res.confidence)
             reported = [h.T_map_camera for h in res.hypotheses if h.T_map_camera is not None]
