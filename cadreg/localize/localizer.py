@@ -574,10 +574,11 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
             # that would be `ok`: an ambiguous one lists its rivals, and claims none of them either.)
             trust, status = trust_for(max(slide, 2.0 * mc.max_pose_std_m)), Status.UNCERTAIN
         # The shape alone may fit another place: a close view of a door in a corner fits every corner of the room.
-        # The colours there are the other place's (`_chroma_rules_out`).
+        # The colours there are the other place's (`_chroma_rules_out`). A pose the frame's objects pin is where its
+        # labels say (under a camera's colour faults the gate held back right graph answers, and no wrong one).
         if choice.chroma is not None:
             diag.notes.append(f"colour: the frame's chroma correlates {choice.chroma:.2f} with the map's at the answer")
-        recoloured = status == Status.OK and self._chroma_rules_out(choice.chroma)
+        recoloured = status == Status.OK and not pinned and self._chroma_rules_out(choice.chroma)
         if recoloured:
             trust, status = 0.5 * trust, Status.UNCERTAIN
         diag.notes.append(f"trust: fitness {choice.fitness:.3f}, rmse {100 * choice.rmse_m:.2f} cm, margin "
