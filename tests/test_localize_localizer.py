@@ -384,6 +384,10 @@ def test_a_close_view_of_a_door_in_a_corner_is_found_in_its_own_corner_by_its_co
     r = Localizer.from_site(site, no_reserve).localize(frame)
     assert r.status == Status.UNCERTAIN and pose_errors(r.hypotheses[0].T_map_camera, T_true)[0] > 1.0
     assert any(n.startswith("uncertain") and "colours are not the map's" in n for n in r.diagnostics.notes)
+    # An answer that does not lie on the map is `low_overlap` whatever its colours: no second look is paid for.
+    r = Localizer.from_site(site, LocalizeConfig(refine=RefineConfig(min_fitness=1.0))).localize(frame)
+    assert r.status == Status.LOW_OVERLAP
+    assert not any("more leaves of the label-free search" in n for n in r.diagnostics.notes)
 
 
 def test_the_margin_is_to_the_best_distinct_refined_rival(localizer) -> None:

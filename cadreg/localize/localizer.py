@@ -240,7 +240,11 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
             return self._no_pose(scan, diag, frame.frame_id)
         with timer("refine"):
             choice = self._refine(scan, candidates, method, diag)
-        if scan.reserve is not None and self._chroma_rules_out(choice.chroma):
+        # Only an answer that lies on the map (RefineConfig.min_fitness) is looked at again: one that does not is
+        # `low_overlap` whatever its colours, and a frame looking past the map's edge would pay the second look's
+        # refinements for nothing (7-Scenes: 50 -> 90-130 ms on such frames).
+        if (scan.reserve is not None and choice.fitness >= self.config.refine.min_fitness
+                and self._chroma_rules_out(choice.chroma)):
             with timer("fallback"):
                 candidates, choice = self._second_look(scan, candidates, choice, method, diag)
         return self._result(scan, candidates, choice, top_k, diag, frame.frame_id)
