@@ -131,14 +131,6 @@ class Layout(BaseModel):
     rooms: list[RoomEntry] = Field(min_length=1)
     corridors: list[CorridorEntry] = Field(default_factory=list)
 
-    @field_validator("rooms")
-    @classmethod
-    def _distinct_names(cls, rooms: list[RoomEntry]) -> list[RoomEntry]:
-        names = [r.name for r in rooms]
-        if len(set(names)) != len(names):
-            raise ValueError(f"room names must be distinct, got {names}")
-        return rooms
-
     @model_validator(mode="after")
     def _distinct_places(self) -> "Layout":
         names = [r.name for r in self.rooms] + [c.name for c in self.corridors]
@@ -291,36 +283,36 @@ def compose_site(layout: Layout, root: str | Path) -> Site:
                               f"room {rooms[0].entry.name!r}: rooms of one site must share them")
     up = _building_up(rooms)
     maps, raws, nodes, regions = [], [], [], []
-    map_at = raw_at = 0
+
+    def add_region(region_id: str, site_map: PointSet, site_raw: PointSet, node_ids: list[str]) -> None:
+        """A region's points appended to each cloud after the regions before it, so the region is a slice of each
+        (a corridor segment's one cloud goes into both)."""
+        map_at, raw_at = sum(map(len, maps)), sum(map(len, raws))
+        maps.append(site_map)
+        raws.append(site_raw)
+        clouds = [site_map] if site_raw is site_map else [site_map, site_raw]
+        regions.append(region_from_points(region_id, [c.points for c in clouds], node_ids,
+                                          (map_at, map_at + len(site_map)), (raw_at, raw_at + len(site_raw)),
+                                          floor_m=_floor_height(up, *clouds)))
+
     for k, r in enumerate(rooms):
         dropped, moved = copy_changes(r.entry, r.site.graph.nodes)
         classes = list(r.site.classes)
         site_map = room_copy_cloud(r.site.map, dropped, moved, classes)
         site_raw = room_copy_cloud(r.site.raw, dropped, moved, classes)
-        maps.append(_moved(site_map, r.T, k * INSTANCE_STRIDE))
-        raws.append(_moved(site_raw, r.T, k * INSTANCE_STRIDE))
         moves = r.entry.moves()
         room_nodes = [_moved_node(_moved_node(n, moves[n.id]) if n.id in moves else n, r.T, r.entry.name)
                       for n in r.site.graph.nodes if n.id not in r.entry.drop_objects]
         nodes += room_nodes
-        # Each room is a region; its points are written contiguously, so the region is a slice of each cloud.
-        regions.append(region_from_points(r.entry.name, [maps[-1].points, raws[-1].points], [n.id for n in room_nodes],
-                                          (map_at, map_at + len(maps[-1])), (raw_at, raw_at + len(raws[-1])),
-                                          floor_m=_floor_height(up, maps[-1], raws[-1])))
-        map_at += len(maps[-1])
-        raw_at += len(raws[-1])
+        add_region(r.entry.name, _moved(site_map, r.T, k * INSTANCE_STRIDE), _moved(site_raw, r.T, k * INSTANCE_STRIDE),
+                   [n.id for n in room_nodes])
     # Corridors: their points in both clouds (a made surface is what the scan and the enhanced map would both hold),
     # one region per segment, no objects.
     spacing = float(first.manifest.get("build_config", {}).get("enhance", {}).get("sample_spacing_m",
                                                                                   CORRIDOR_SPACING_M))
     for entry in layout.corridors:
         for region_id, cloud in corridor_segments(entry, up, spacing):
-            maps.append(cloud)
-            raws.append(cloud)
-            regions.append(region_from_points(region_id, [cloud.points], [], (map_at, map_at + len(cloud)),
-                                              (raw_at, raw_at + len(cloud)), floor_m=_floor_height(up, cloud)))
-            map_at += len(cloud)
-            raw_at += len(cloud)
+            add_region(region_id, cloud, cloud, [])
     ids = [r.id for r in regions]
     if len(set(ids)) != len(ids):
         raise ConfigError(f"region ids repeat: {sorted({i for i in ids if ids.count(i) > 1})} (a room named as a "
