@@ -276,3 +276,35 @@ def test_render_layout_and_bench_carry_the_corridors_through_the_cli(corridor_bu
     summary = json.loads(report.read_text())["methods"]["cadreg"]
     assert summary["corridor"]["frames"] == len(hall) and summary["corridor"]["ok_wrong"] == 0
     assert summary["unique"]["frames"] + summary["repeated"]["frames"] == 5 - len(hall)
+
+
+@pytest.mark.realdata
+def test_a_view_from_a_room_into_the_corridor_is_looked_at_in_the_copies_of_the_room(corridor_building) -> None:
+    """`_copies_of_view`: a view's copies are those of the room it looks into (its ROI's centre) and, when the
+    camera stands in another room, those of the camera's room too. A camera in room r000 looking out into the
+    corridor has its view looked at in r001, r000's copy, wherever the corridor's segments repeat; a view inside
+    the room has the room's copies only."""
+    from cadreg import Localizer
+    from cadreg.site.bundle import Site
+
+    _, site_dir = corridor_building
+    loc = Localizer.from_site(Site.load(site_dir))
+    ids = [r.id for r in loc.maps.regions]
+    room, other = ids.index("r000"), ids.index("r001")
+    assert [b for b, _ in loc.twins.of(room)] == [other]  # the two rooms are copies
+    box = lambda k: np.asarray(loc.maps.regions[k].bounds, dtype=np.float64)  # noqa: E731
+    middle = lambda k: 0.5 * (box(k)[0] + box(k)[1])  # noqa: E731
+    T = np.eye(4)
+    T[:3, 3] = middle(room) + [0.0, 0.0, 0.5]
+    segments = [k for k, i in enumerate(ids) if i.startswith("c00.")]
+    hall = min(segments, key=lambda k: np.linalg.norm(middle(k)[:2] - T[:2, 3]))
+    into_hall = middle(hall) - T[:3, 3]  # the ROI's centre, camera frame (the camera's axes are the map's)
+    assert loc._roi_region(T, into_hall) == hall and int(loc.maps.indices_at(T[None, :3, 3])[0]) == room
+    assert all(b != other for b, _ in loc.twins.of(hall))  # the corridor alone would not look there
+
+    copies = loc._copies_of_view(T, into_hall)
+    (T_ba,) = [T_ba for b, T_ba in copies if b == other]
+    assert loc.region_of(T_ba @ T) == "r001"
+    assert [b for b, _ in copies if b != other] == [b for b, _ in loc.twins.of(hall)]
+    inside = np.array([0.0, 0.0, 0.3])
+    assert loc._copies_of_view(T, inside) == loc.twins.of(room)

@@ -389,6 +389,40 @@ def test_a_copy_that_wins_has_its_copies_looked_at_only_in_the_rooms_that_stood(
     # 1 mm off: not looked at again, and the copy that stood stays (here refined next: within the contender margin)
     seen = promote(0.001)
     assert asked == [] and any(k is twins[1].candidate for k in seen)
+    asked.clear()
+    # No copy stood but the promoted one: the room of the pose it beat is looked at (its copy of the new winner
+    # was never looked at: the beaten pose's refinement may have slid off the truth there).
+    twins = twins[:1]
+    promote(0.02)
+    assert asked == [{start}]
+
+
+@pytest.mark.realdata
+def test_a_copy_at_a_refined_pose_stands_only_where_it_shows_the_frame_clearly_better(twin_rooms_dir: Path,
+                                                                                       twin_shared_view) -> None:
+    """`_twin_views` beside the refined contenders: a copy at a refined contender's pose is that contender, and is
+    not looked at; one within the refinement's reach of a contender (NEAR_REACH_M) stands only when it shows the
+    frame better than that contender by the ambiguity margin (the contender's refinement slid off the view there);
+    one beyond every contender's reach stands as it would alone."""
+    from cadreg.localize.stages import NEAR_REACH_M
+
+    loc, scan, T_a, to_b = _shared_view_scan(twin_rooms_dir, twin_shared_view)
+
+    def looked(off_m: float, contender_score: float) -> list[Refined]:
+        """The copies of the winner's view (in room "a") with a refined contender in room "b" off_m from the
+        copy's pose, its view agreement contender_score."""
+        off = np.eye(4)
+        off[1, 3] = off_m
+        candidates = [_refined_entry(T_a, 0.8).candidate, _refined_entry(off @ to_b @ T_a, contender_score).candidate]
+        return loc._twin_views(scan, T_a, scan.center_camera, candidates, Renders(), 2, 0.8)
+
+    (alone,) = looked(1.0, 0.9)  # a contender 1 m away, beyond its reach: the copy as it stands alone
+    assert loc._roi_region(alone.T_map_camera, scan.center_camera) == loc._roi_region(to_b @ T_a, scan.center_camera)
+    assert looked(0.0, 0.0) == []  # the contender's own pose: judged already
+    near = 0.5 * NEAR_REACH_M
+    assert looked(near, alone.score - 0.01) == []  # within reach and about as good: that contender again
+    (better,) = looked(near, alone.score - 2 * loc.config.match.ambiguity_margin)  # it slid: the copy stands
+    assert better.score == alone.score
 
 
 def test_a_render_belongs_to_its_outcome_not_to_an_id_a_discarded_one_freed() -> None:

@@ -22,9 +22,10 @@ import numpy as np
 from ..geometry import make_Ts, pose_errors
 from ..result import Diagnostics, Hypothesis
 from .field_view import align_on_field
+from .match import distinct_pairs
 from .refine import RefineOutcome
 from .score import score_poses
-from .stages import Candidate, Refined, Scan
+from .stages import NEAR_REACH_DEG, NEAR_REACH_M, Candidate, Refined, Scan
 
 # A view moved into a room that repeats it starts within the copies' misfit (centimetres): a short alignment.
 TWIN_ALIGN_ITERATIONS = 6
@@ -116,9 +117,14 @@ class BuildingViews:
                 # Only the rooms whose copies stood from the earlier pose are looked at again: the new winner is
                 # that pose's copy refined (a few centimetres off it) and shows the frame better, so a room whose
                 # copy fell short of the earlier, lower bar falls short of this one too.
+                # So are the rooms of the poses it beat, whose copies of the new winner were never looked at: a
+                # refinement in the true room that slid 9 cm (view agreement 0.83) lost to a copy refined in
+                # another room (0.84), whose view moved back into the true room showed the frame 0.91 (10-room
+                # corridor building; the truth was not among the `ambiguous` answer's hypotheses).
                 more = self._twin_views(scan, refined[0].T_map_camera, center_camera, candidates, renders,
                                         len(refined), refined[0].score,
-                                        among={self._roi_region(t.T_map_camera, center_camera) for t in twins})
+                                        among={self._roi_region(t.T_map_camera, center_camera) for t in twins}
+                                        | {self._roi_region(r.T_map_camera, center_camera) for r in refined[1:]})
                 # a copy seen from the new winner replaces the same copy seen from an earlier pose
                 apart = self._distinct_from_all([t.T_map_camera for t in twins], [u.T_map_camera for u in more])
                 twins = [t for t, keep in zip(twins, apart) if keep] + more
@@ -175,14 +181,17 @@ class BuildingViews:
         outcome's id.
         view_score : the winner's view agreement. among : the rooms to look at (every copy when None).
         candidates : the refined contenders first (`refined` of them), then the others; an unrefined candidate at a
-        copy's pose is dropped from it (the copy's pose comes from the refined answer), a refined one stands.
+        copy's pose is dropped from it (the copy's pose comes from the refined answer). A refined one stands, and
+        the copy is dropped, when the copy lies at it (TWIN_SAME_POSE_M, TWIN_SAME_POSE_DEG: judged already) or
+        within its refinement's reach showing the frame no clearly better (`_stands_beside_contenders`).
         The graph match misses a copy whose objects rank it lower (a chair missing out of view, another
         neighbour), and a view that copy repeats must not be answered `ok`, nor one it shows better."""
-        a = self._roi_region(T_map_camera, center_camera)
-        copies = [(b, T_ba) for b, T_ba in self.twins.of(a) if (among is None or b in among) and (
+        copies = [(b, T_ba) for b, T_ba in self._copies_of_view(T_map_camera, center_camera)
+                  if (among is None or b in among) and (
                   scan.search is None or scan.search.allows((T_ba @ T_map_camera)[None, :3, 3], self.maps.regions)[0])]
         moved = [T_ba @ T_map_camera for _, T_ba in copies]
-        keep = self._distinct_from_all(moved, [c.T_map_camera for c in candidates[:refined]])
+        keep = distinct_pairs(np.array(moved).reshape(-1, 4, 4), self._refined_poses(candidates, refined),
+                              min_translation_m=TWIN_SAME_POSE_M, min_rotation_deg=TWIN_SAME_POSE_DEG).all(axis=1)
         if moved and scan.clusters:
             keep &= self._shows_objects(scan, T_map_camera, moved)
         copies, moved = [c for c, k in zip(copies, keep) if k], [T for T, k in zip(moved, keep) if k]
@@ -232,6 +241,8 @@ class BuildingViews:
         # in full: the rays of the first look are traced already
         rendered = scan.view.render_completing(self.field, T, scan.view.thinned_rays(TWIN_THIN_STEP), thin[near])
         score = scan.view.agreement(rendered)
+        stands = self._stands_beside_contenders(T, score, candidates, refined)
+        copies, T, rendered, score = [c for c, k in zip(copies, stands) if k], T[stands], rendered[stands], score[stands]
         out = []
         carried_all = self.twins.carry_all(assignment, copies)
         regions = self.maps.indices_at(T[:, :3, 3])
@@ -243,6 +254,44 @@ class BuildingViews:
             renders[outcome] = rendered[k]
             out.append(Refined(float(score[k]), outcome, Candidate(T_k, float(score[k]), h, carried, rendered[k])))
         return out
+
+    def _copies_of_view(self, T_map_camera: np.ndarray, center_camera: np.ndarray) -> list[tuple[int, np.ndarray]]:
+        """[(b, T_ba)]: the rooms that repeat the room a pose's view looks into (the region of its ROI's centre) and,
+        when the camera stands in another, those that repeat the camera's room, each with the transform that moves
+        the view there (`RoomTwins.of`); a copy of the second kind only where it moves the pose elsewhere than one
+        of the first. A view from a room through its door into the corridor looks into the corridor, whose
+        segments need not repeat as the rooms along them do: in the 10-room corridor building such a view, repeated
+        in three rooms, was answered `ambiguous` in one of them without the truth's room among its hypotheses."""
+        looked_into = self._roi_region(T_map_camera, center_camera)
+        copies = list(self.twins.of(looked_into))
+        stood_in = int(self.maps.indices_at(T_map_camera[None, :3, 3])[0])
+        if stood_in == looked_into or not self.twins.of(stood_in):
+            return copies
+        more = self.twins.of(stood_in)
+        elsewhere = self._distinct_from_all([T_ba @ T_map_camera for _, T_ba in more],
+                                            [T_ba @ T_map_camera for _, T_ba in copies])
+        return copies + [c for c, k in zip(more, elsewhere) if k]
+
+    @staticmethod
+    def _refined_poses(candidates: list[Candidate], refined: int) -> np.ndarray:
+        """(refined, 4, 4): the poses of the refined contenders, first in `candidates` (`_report_refined`)."""
+        return np.array([c.T_map_camera for c in candidates[:refined]]).reshape(-1, 4, 4)
+
+    def _stands_beside_contenders(self, poses: np.ndarray, scores: np.ndarray, candidates: list[Candidate],
+                             refined: int) -> np.ndarray:
+        """(len(poses),) bool: whether each copy (poses (h, 4, 4), view agreements `scores`) stands beside the
+        refined contenders (the first `refined` of `candidates`, scores their view agreement): it lies beyond the
+        refinement's reach of each (NEAR_REACH_M, NEAR_REACH_DEG), or shows the frame clearly better than every
+        one within it (by the ambiguity margin). A copy in a contender's basin that shows the frame about as well
+        is that contender again; one that shows it clearly better found what the contender's refinement missed (it
+        slid, or stopped short: the 9 cm of `_promote_twins`), and it is looked at as any copy is. (Left in, the
+        copies about as good as a contender made a unique 100-room view `ambiguous`, a copy 1 cm from a rival's
+        refined pose looking the same along the rays where the rival itself had not; and the same room's pose was
+        listed twice among an answer's hypotheses, a few millimetres apart.)"""
+        within = ~distinct_pairs(poses, self._refined_poses(candidates, refined), min_translation_m=NEAR_REACH_M,
+                                 min_rotation_deg=NEAR_REACH_DEG)
+        bar = np.array([c.score for c in candidates[:refined]]) + self.config.match.ambiguity_margin
+        return ~np.any(within & (bar[None, :] >= scores[:, None]), axis=1)
 
     def _shows_objects(self, scan: Scan, T_map_camera: np.ndarray, poses: list[np.ndarray]) -> np.ndarray:
         """(len(poses),) bool: whether each pose (a copy of T_map_camera in a room that repeats its room) has the

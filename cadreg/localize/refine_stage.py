@@ -25,7 +25,7 @@ from .building_views import Renders
 from .match import distinct_pairs
 from .points import FramePoints, voxel_budget
 from .refine import RefineMap, RefineOutcome, crop_to_roi
-from .stages import Candidate, Choice, Refined, Scan
+from .stages import NEAR_REACH_DEG, NEAR_REACH_M, Candidate, Choice, Refined, Scan
 
 # Distinct candidates refined beyond the contenders when every contender sees through the map: two, since a
 # frame of a place the map lacks sees through it at every pose, and each costs a refinement.
@@ -37,10 +37,6 @@ EXTRA_CONTENDERS = 2
 HOPELESS_SEE_THROUGH = 1.5
 # A refinement whose whole-frame fitness fell by more than this from its start slid (`_unslid`).
 SLIDE_TOLERANCE = 0.01
-# A refinement settles into the basin it starts in: a candidate farther than this from every refined pose is
-# another start (`_near_contender`), even when it is no distinct hypothesis (MatchConfig.distinct_translation_m).
-NEAR_REACH_M = 0.1
-NEAR_REACH_DEG = 5.0
 
 
 @dataclass(eq=False)

@@ -28,6 +28,12 @@ from .refine import RefineOutcome
 
 # Stages reported to a `progress(done, total)` callback, in order; "fallback" is timed but runs only sometimes.
 PROGRESS_STAGES = ("points", "cluster", "gravity", "match", "verify", "refine")
+# A refinement settles into the basin it starts in: a candidate farther than this from every refined pose is
+# another start (`refine_stage.RefineStage._near_contender`), even when it is no distinct hypothesis
+# (MatchConfig.distinct_translation_m); a building's copy of a view within it of a refined pose is that pose's
+# basin (`building_views.BuildingViews._twin_views`).
+NEAR_REACH_M = 0.1
+NEAR_REACH_DEG = 5.0
 
 
 @dataclass
