@@ -175,10 +175,10 @@ class BuildingViews:
     def _twin_views(self, scan: Scan, T_map_camera: np.ndarray, center_camera: np.ndarray,
                     candidates: list[Candidate], renders: Renders, refined: int,
                     view_score: float, among: set[int] | None = None) -> list[Refined]:
-        """In a building: the winner's pose moved into each room that repeats the room its view looks into
-        (`twins.py`), where no refined contender stands, pulled onto the field and rendered: each as a `Refined`
-        (its view agreement, an outcome with no refinement, its candidate), each render put in `renders` under its
-        outcome's id.
+        """In a building: the winner's pose moved into each room that repeats the room its view looks into, or
+        the room its camera stands in (`_copies_of_view`, `twins.py`), where no refined contender stands, pulled
+        onto the field and rendered: each as a `Refined` (its view agreement, an outcome with no refinement, its
+        candidate), each render put in `renders` under its outcome's id.
         view_score : the winner's view agreement. among : the rooms to look at (every copy when None).
         candidates : the refined contenders first (`refined` of them), then the others; an unrefined candidate at a
         copy's pose is dropped from it (the copy's pose comes from the refined answer). A refined one stands, and
@@ -278,7 +278,7 @@ class BuildingViews:
         return np.array([c.T_map_camera for c in candidates[:refined]]).reshape(-1, 4, 4)
 
     def _stands_beside_contenders(self, poses: np.ndarray, scores: np.ndarray, candidates: list[Candidate],
-                             refined: int) -> np.ndarray:
+                                  refined: int) -> np.ndarray:
         """(len(poses),) bool: whether each copy (poses (h, 4, 4), view agreements `scores`) stands beside the
         refined contenders (the first `refined` of `candidates`, scores their view agreement): it lies beyond the
         refinement's reach of each (NEAR_REACH_M, NEAR_REACH_DEG), or shows the frame clearly better than every
