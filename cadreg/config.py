@@ -175,8 +175,10 @@ class MatchConfig(_Section):
     # at 0.6 cm, and at 0.8, no set gained a wrong `ok` (scene0470 renders, the buildings, the mixed building,
     # Replica office0, 7-Scenes both ways).
     max_pose_std_m: float = Field(0.006, gt=0, description="a pose the geometry alone found (not the graph) whose "
-                                  "covariance leaves it a standard deviation above this along some direction is "
-                                  "uncertain: the frame's geometry (one wall, a floor and a wall) does not pin it")
+                                  "covariance leaves it a standard deviation σ above this along some direction may "
+                                  "slide (one wall, a floor and a wall): with a close rival it is uncertain, not "
+                                  "ambiguous; else its confidence is scaled by this / σ and the slide probe "
+                                  "(slide_*) decides whether it is ok")
     objects_pin_share: float = Field(0.1, ge=0, le=1, description="a graph answer whose matched objects hold less "
                                      "than this share of the frame's points is probed for sliding as a pose the "
                                      "geometry alone found is")

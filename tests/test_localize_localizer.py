@@ -460,6 +460,28 @@ def test_only_a_pose_the_geometry_alone_found_is_held_to_the_slide_limit(scene) 
     pytest.fail("no view gave an ok graph answer and an ok label-free one")
 
 
+def test_a_label_free_pose_over_the_slide_limit_is_ok_when_the_probe_finds_it_pinned(scene, localizer) -> None:
+    """Beyond `MatchConfig.max_pose_std_m` the covariance no longer holds a pose that would be `ok` back on its own
+    word: its confidence falls by limit / σ, and the slide probe decides. Just over the limit a pinned view stays
+    `ok`; at a third of its spread its confidence falls below `min_ok_confidence`."""
+    from cadreg.config import MatchConfig
+    from cadreg.localize.stages import pose_std_m
+
+    for frame, T in _views(scene, 6, seed=23, min_objects=3):
+        result = localizer.localize(replace(frame, labels=None))
+        if result.status != Status.OK or not result.diagnostics.method.startswith("fallback"):
+            continue
+        std = pose_std_m(np.asarray(result.covariance))
+        just_under = Localizer.from_site(scene.site, LocalizeConfig(match=MatchConfig(max_pose_std_m=0.95 * std)))
+        held = just_under.localize(replace(frame, labels=None))
+        assert held.status == Status.OK
+        assert held.confidence == pytest.approx(0.95 * result.confidence, rel=0.02)
+        far_under = Localizer.from_site(scene.site, LocalizeConfig(match=MatchConfig(max_pose_std_m=std / 3)))
+        assert far_under.localize(replace(frame, labels=None)).status == Status.UNCERTAIN
+        return
+    pytest.fail("no view gave an ok label-free answer")
+
+
 def test_a_close_view_of_a_bare_wall_slides_and_a_view_of_the_room_does_not(scene, localizer) -> None:
     """`Localizer._slides`: 60 cm from a wall, the frame sees one plane, which fits as well 25 cm along it (its
     fitness and depth agreement kept): such a pose is not claimed. A view of the floor, walls and objects loses

@@ -52,10 +52,15 @@ def test_a_pose_the_geometry_lets_slide_is_uncertain() -> None:
     assert pose_std_m(cov) == pytest.approx(0.013)
     assert pose_std_m(None) == 0.0
     rules = dict(min_fitness=0.5, ambiguity_margin=0.03, max_see_through=0.1, min_ok_confidence=0.5)
-    assert answer_status(0.9, 0.5, False, 0.0, 0.8, **rules, pose_std=0.013, max_pose_std=0.004) == Status.UNCERTAIN
-    assert answer_status(0.9, 0.5, False, 0.0, 0.8, **rules, pose_std=0.002, max_pose_std=0.004) == Status.OK
-    # even with a rival: the pose itself is not pinned
+    # with a close rival: not ambiguous between two rooms, since the pose itself is not pinned
     assert answer_status(0.9, 0.0, True, 0.0, 0.8, **rules, pose_std=0.013, max_pose_std=0.004) == Status.UNCERTAIN
+    assert answer_status(0.9, 0.0, True, 0.0, 0.8, **rules, pose_std=0.002, max_pose_std=0.004) == Status.AMBIGUOUS
+    # alone, its confidence falls with the spread (the caller's slide probe tests the rest)
+    trust = confidence(0.9, 0.0, 0.5, inlier_m=0.05, confident_margin=0.1, pose_std=0.013, max_pose_std=0.004)
+    assert answer_status(0.9, 0.5, False, 0.0, trust, **rules, pose_std=0.013, max_pose_std=0.004) == Status.UNCERTAIN
+    trust = confidence(0.9, 0.0, 0.5, inlier_m=0.05, confident_margin=0.1, pose_std=0.0045, max_pose_std=0.004)
+    assert answer_status(0.9, 0.5, False, 0.0, trust, **rules, pose_std=0.0045, max_pose_std=0.004) == Status.OK
+    assert answer_status(0.9, 0.5, False, 0.0, 0.8, **rules, pose_std=0.002, max_pose_std=0.004) == Status.OK
 
 
 def test_a_pose_whose_depth_disagrees_with_the_map_is_uncertain() -> None:

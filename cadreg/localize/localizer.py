@@ -540,7 +540,10 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         # Only a pose the geometry alone found is held to it: the graph's object matches pin a pose along the
         # directions the refinement leaves free (it does not move it there), and in the 10-room building right
         # graph answers could slide 0.44-0.54 cm. The limit was 0.4 cm before the slide probe (`_slides`) tested
-        # what it stands for; right label-free answers in the buildings slide 0.41-0.56 cm (MatchConfig).
+        # what it stands for; right label-free answers in the buildings slide 0.41-0.56 cm (MatchConfig). Beyond
+        # the limit, a pose that would be `ok` is no longer held back on the covariance's word: the probe decides,
+        # and its confidence falls with the spread (`stages.answer_status`). Right label-free answers at 0.60-0.63
+        # cm in three buildings had been `uncertain` (confidence 0.81-0.89), and no wrong one became `ok`.
         std = pose_std_m(out.covariance)
         slide = 0.0 if by_objects else std
 

@@ -241,21 +241,23 @@ def answer_status(fitness: float, margin: float, has_rival: bool, see_through: f
                   min_ok_confidence: float, pose_std: float = 0.0, max_pose_std: float = np.inf,
                   depth_agreement: float = 1.0, min_depth_agreement: float = 0.0) -> Status:
     """The status of a refined pose: `low_overlap` when too little of the frame lies on the map; `uncertain` when
-    the frame sees through more than max_see_through of the map in view, when its depth agrees with the map's
-    surfaces in less than min_depth_agreement of the view it shares with the map, or when the pose may slide by
-    more than max_pose_std (close rival or not); `ambiguous` when a distinct rival scored within the ambiguity
-    margin; `uncertain` when the confidence is below min_ok_confidence; else `ok`. Only `ok` claims the pose is
-    right."""
+    the frame sees through more than max_see_through of the map in view, or when its depth agrees with the map's
+    surfaces in less than min_depth_agreement of the view it shares with the map; `ambiguous` when a distinct
+    rival scored within the ambiguity margin, `uncertain` instead when the pose may slide by more than
+    max_pose_std (it lies nowhere in particular, nor does its rival); `uncertain` when the confidence is below
+    min_ok_confidence; else `ok`. Only `ok` claims the pose is right.
+
+    A pose that may slide by more than max_pose_std and would be `ok` stays `ok` here: its confidence falls with
+    its spread (`confidence`), and the caller moves it along the directions the frame's geometry pins least to
+    see whether it does slide (`Localizer._slides`), a test of what the covariance only estimates."""
     if fitness < min_fitness:
         return Status.LOW_OVERLAP
     if see_through > max_see_through:
         return Status.UNCERTAIN  # whatever its rivals: the frame contradicts the map at this pose
     if depth_agreement < min_depth_agreement:
         return Status.UNCERTAIN  # whatever its rivals: along the rays, the map's surfaces lie elsewhere
-    if pose_std > max_pose_std:
-        return Status.UNCERTAIN  # whatever its rivals: the frame's geometry does not pin the pose
     if has_rival and margin < ambiguity_margin:
-        return Status.AMBIGUOUS
+        return Status.UNCERTAIN if pose_std > max_pose_std else Status.AMBIGUOUS
     if trust < min_ok_confidence:
         return Status.UNCERTAIN
     return Status.OK
