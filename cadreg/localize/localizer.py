@@ -79,6 +79,14 @@ COARSE_FAR_SHARE = 0.25
 # within 5 cm / 5° in 86 % of the cases (72 % from a 25 cm reach in 10 steps; 20 cm off: 98 %), at 1.4 ms each.
 FIELD_ALIGN_ITERATIONS = 15
 FIELD_ALIGN_REACH_M = (0.5, 0.06)
+# The label-free search's leaves come polished to half its finest cell (`bbs.polish`, LabelFreeConfig.voxel_m):
+# they are pulled in from a reach of that cell down to this, not from the field's truncation. A real frame sees
+# more than a fused map holds (what no mapping frame saw), and from half a metre those points, paired with
+# whatever surface lay nearest, pulled leaves 2-8 cm from the answer 20-40 cm away into another basin (real
+# 7-Scenes RedKitchen frames in a 3-room building, the kitchen fused from other frames of the sequence: of the 137
+# frames the kitchen alone answered `ok`, 92 -> 118 got its answer; renders, which show nothing the map lacks,
+# did not need the reach: the building sets' answers the same or an `ok` <-> `ambiguous` either way).
+LEAF_ALIGN_LAST_REACH_M = 0.05
 # An object's top is the 98th percentile of its points along up: the highest 2 % are mixed pixels and noise.
 TOP_PERCENTILE = 98
 
@@ -724,8 +732,10 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
             xyz = np.asarray(source.points())[:, :3]
             poses = [self._coarse_align(source, xyz, hyp.T(i), scan) for i in range(len(hyp))]
             return [self._candidate(hyp, i, T, self._agreement_score(T, scan), origin) for i, T in enumerate(poses)]
+        reach = ((self.config.label_free.voxel_m, LEAF_ALIGN_LAST_REACH_M) if origin == "fallback:bbs"
+                 else FIELD_ALIGN_REACH_M)
         R, t = align_on_field(self.field, scan.score_xyz, hyp.R, hyp.t, up=None if scan.floor is None else self.up,
-                              iterations=FIELD_ALIGN_ITERATIONS, reach_m=FIELD_ALIGN_REACH_M)
+                              iterations=FIELD_ALIGN_ITERATIONS, reach_m=reach)
         T = make_Ts(R, t)
         rendered = scan.view.render(self.field, T)
         score = scan.view.agreement(rendered)
