@@ -507,3 +507,26 @@ def test_a_rival_put_first_without_a_render_is_rendered_for_the_answer(twin_room
     r = loc.localize(frame)  # the view both rooms show: its rivals are there
     assert r.status == Status.AMBIGUOUS
     assert any(pose_errors(h.T_map_camera, T_a)[0] < 0.05 for h in r.hypotheses)
+
+
+@pytest.mark.realdata
+def test_of_two_refinements_at_one_place_the_one_whose_depth_agrees_goes_first(twin_rooms_dir: Path,
+                                                                               twin_shared_view) -> None:
+    """`Localizer._deepest_at_the_winners_place_first`: a refinement that ended 15 cm ahead of the view's pose, put
+    first by a higher view agreement, gives way to the one at the pose, whose depth agrees with the frame's on the
+    rays both show a surface on; a distinct pose (the view in the other room) is no contender at the winner's
+    place, and one whose depth agrees about as well (1 cm off) leaves the order as it is."""
+    loc, scan, T_a, to_b = _shared_view_scan(twin_rooms_dir, twin_shared_view)
+    ahead, beside = T_a.copy(), T_a.copy()
+    ahead[:3, 3] += 0.15 * T_a[:3, 2]
+    beside[:3, 3] += 0.01 * T_a[:3, 0]
+    refined = [_refined_entry(ahead, 0.9), _refined_entry(T_a, 0.8)]
+    loc._deepest_at_the_winners_place_first(scan, refined, Renders())
+    assert refined[0].T_map_camera is T_a and refined[1].T_map_camera is ahead
+    in_b = to_b @ T_a
+    refined = [_refined_entry(ahead, 0.9), _refined_entry(in_b, 0.8)]
+    loc._deepest_at_the_winners_place_first(scan, refined, Renders())
+    assert refined[0].T_map_camera is ahead
+    refined = [_refined_entry(T_a, 0.9), _refined_entry(beside, 0.8)]
+    loc._deepest_at_the_winners_place_first(scan, refined, Renders())
+    assert refined[0].T_map_camera is T_a

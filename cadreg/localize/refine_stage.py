@@ -184,6 +184,7 @@ class RefineStage:
         scan, diag, renders, center_camera = run.scan, run.diag, run.renders, run.center_camera
         mc = self.config.match
         refined.sort(key=lambda r: -r.score)
+        self._deepest_at_the_winners_place_first(scan, refined, renders)
         self._report_refined(refined, candidates)
         twins = self._twin_views(scan, refined[0].T_map_camera, center_camera, candidates, renders, len(refined),
                                  refined[0].score)
