@@ -121,6 +121,30 @@ def test_bench_judges_by_a_given_truth(scene0470_site_dir, frames_dir, tmp_path)
                  "--truth", str(tmp_path / "missing")]) == 2
 
 
+def test_bench_moves_the_truth_into_the_building_the_frames_room_stands_in(scene0470_site_dir, frames_dir,
+                                                                           tmp_path) -> None:
+    """`--room LAYOUT:NAME`: frames recorded in a room's own frame (real frames of a fused kitchen) judged in the
+    building composed from LAYOUT, their truth moved by the room's T_building_room. Here the "building" is the room
+    itself: named at its place the answers are right; named 2 m along x, every answer is 2 m off."""
+    def layout(shift_m: float) -> str:
+        T = np.eye(4)
+        T[0, 3] = shift_m
+        path = tmp_path / f"layout{shift_m}.json"
+        path.write_text(json.dumps({"site_id": "b", "rooms": [{"name": "k", "bundle": "kitchen",
+                                                               "T_building_room": T.tolist()}]}))
+        return f"{path}:k"
+
+    out = tmp_path / "bench.json"
+    for shift_m, success in ((0.0, 1.0), (2.0, 0.0)):
+        assert main(["bench", "--site", str(scene0470_site_dir), "--frames", str(frames_dir), "--method", "cadreg",
+                     "--room", layout(shift_m), "--json", str(out)]) == 0
+        s = json.loads(out.read_text())["methods"]["cadreg"]
+        assert s["success_5cm_5deg"] == success
+        assert abs(s["median_translation_m"] - shift_m) < 0.01
+    for bad in ("no-colon", f"{tmp_path / 'layout0.0.json'}:nowhere"):
+        assert main(["bench", "--site", str(scene0470_site_dir), "--frames", str(frames_dir), "--room", bad]) == 2
+
+
 def test_localize_cli_prints_json_and_draws(scene0470_site_dir, frames_dir, tmp_path, capsys) -> None:
     png = tmp_path / "loc.png"
     rc = main(["localize", "--site", str(scene0470_site_dir), "--frames", str(frames_dir), "--index", "0",

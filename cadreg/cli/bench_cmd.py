@@ -35,6 +35,11 @@ def register(sub) -> None:
                    help="ground truth from DIR/<index>.txt (4x4 T_map_camera, e.g. `cadreg site fuse --write-poses`: "
                         "where the map puts each frame) instead of the frames' recorded poses; frames without one "
                         "are skipped")
+    p.add_argument("--room", default=None, metavar="LAYOUT:NAME",
+                   help="the frames were taken in room NAME of the building `cadreg site compose LAYOUT` made: their "
+                        "ground truth (recorded, or --truth), in the room's own frame, is moved into the building's "
+                        "by the room's T_building_room (e.g. real 7-Scenes frames in a building holding their "
+                        "fused kitchen)")
     p.add_argument("--label-noise", choices=("none", "mild", "harsh"), default="none",
                    help="a segmenter's errors in the labels the labelled methods get, seeded per frame (label_noise.py): "
                         "mild = boundaries misregistered by up to 3 px and bleeding; harsh = 6 px, classes swapped "
@@ -61,6 +66,25 @@ def read_views(frames_dir: Path):
         return views_from_doc(json.loads(path.read_text(encoding="utf-8")))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, InvalidArgument) as exc:
         raise InvalidFileError(path, str(exc)) from None
+
+
+def truth_in_building(room: str, frames, truth: dict | None) -> dict:
+    """Frame index -> T_building_camera: each frame's ground truth in its room's frame (`truth`, else the recorded
+    pose; frames with neither are left out) moved by T_building_room of the room `room` ("LAYOUT:NAME") names."""
+    import numpy as np
+
+    from ..errors import ConfigError
+    from ..site.compose import read_layout
+
+    layout_path, sep, name = room.rpartition(":")
+    if not sep or not layout_path or not name:
+        raise ConfigError(f"--room must be LAYOUT:NAME, got {room!r}")
+    entry = next((r for r in read_layout(layout_path).rooms if r.name == name), None)
+    if entry is None:
+        raise ConfigError(f"--room: no room {name!r} in {layout_path}")
+    T_building_room = np.asarray(entry.T_building_room, dtype=np.float64)
+    in_room = truth if truth is not None else {i: frames.pose(i) for i in frames.indices}
+    return {i: T_building_room @ T for i, T in in_room.items() if T is not None}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -95,6 +119,8 @@ def run(args: argparse.Namespace) -> int:
 
     views = read_views(args.frames)
     truth = None if args.truth is None else read_indexed_poses(args.truth)
+    if args.room:
+        truth = truth_in_building(args.room, frames, truth)
     noise = None if args.label_noise == "none" else LABEL_NOISE_PRESETS[args.label_noise]
     color_noise = None if args.color_noise == "none" else COLOR_NOISE_PRESETS[args.color_noise]
     report = run_bench(site, frames, methods, localizer=localizer, limit=args.limit, seed=args.seed,
