@@ -530,3 +530,28 @@ def test_of_two_refinements_at_one_place_the_one_whose_depth_agrees_goes_first(t
     refined = [_refined_entry(T_a, 0.9), _refined_entry(beside, 0.8)]
     loc._deepest_at_the_winners_place_first(scan, refined, Renders())
     assert refined[0].T_map_camera is T_a
+
+
+@pytest.mark.realdata
+def test_of_poses_that_tie_along_the_rays_the_one_whose_depth_agrees_is_the_answer(twin_rooms_dir: Path,
+                                                                                 twin_shared_view) -> None:
+    """`Localizer._told_by_depth`: answered 40 cm ahead of the view's pose with the view's pose as a rival (their
+    view agreements within the ambiguity margin), the view's pose, whose depth agrees with the frame's on the rays
+    both show a surface on, is put first and the tie is told; the same view in the room that copies it (its depth
+    agrees as well) is not told apart from the answer."""
+    from cadreg.result import Diagnostics
+
+    loc, scan, T_a, to_b = _shared_view_scan(twin_rooms_dir, twin_shared_view)
+    ahead = T_a.copy()
+    ahead[:3, 3] += 0.4 * T_a[:3, 2]
+    winner, rival = _refined_entry(ahead, 0.80), _refined_entry(T_a, 0.79)
+    refined, candidates, diag = [winner], [winner.candidate, rival.candidate], Diagnostics()
+    told = loc._told_by_depth(scan, refined, [rival.candidate], lambda c: rival, candidates, Renders(),
+                              [winner, rival], diag)
+    assert told and refined[0] is rival and refined[0].T_map_camera is T_a
+    assert any("the depth along the frame's rays" in n for n in diag.notes)
+    copy = _refined_entry(to_b @ T_a, 0.79)
+    refined, candidates = [_refined_entry(T_a, 0.80)], []
+    assert not loc._told_by_depth(scan, refined, [copy.candidate], lambda c: copy, candidates, Renders(),
+                                  refined + [copy], Diagnostics())
+    assert refined[0].T_map_camera is not copy.T_map_camera

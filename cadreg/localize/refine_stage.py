@@ -179,8 +179,8 @@ class RefineStage:
                        refine: Callable[[Candidate], Refined]) -> tuple[bool, float, list[Candidate]]:
         """In a building: the refined contenders ranked by view agreement, the copies of the best's view looked at
         (and promoted when they show the frame better), the rivals that look the same along the frame's rays found
-        and, when there are some, ordered by the frame's objects and fit (`building_views.py`). Returns (has a
-        distinct rival, margin, rivals)."""
+        and, when there are some, told apart by the frame's objects or depth, else ordered by its fit
+        (`building_views.py`). Returns (has a distinct rival, margin, rivals)."""
         scan, diag, renders, center_camera = run.scan, run.diag, run.renders, run.center_camera
         mc = self.config.match
         refined.sort(key=lambda r: -r.score)
@@ -204,20 +204,22 @@ class RefineStage:
         diag.notes.append(f"refined {len(refined)} of the best poses, view agreement "
                           + ", ".join(f"{r.score:.3f}" for r in refined)
                           + (f"; {len(rivals)} distinct poses look the same along the frame's rays" if rivals else ""))
-        if rivals and scan.clusters:
+        if rivals:
             before = refined[0].candidate
-            told = self._told_by_objects(scan, refined, rivals, refine, candidates, diag)
+            told = ((bool(scan.clusters) and self._told_by_objects(scan, refined, rivals, refine, candidates, diag))
+                    or self._told_by_depth(scan, refined, rivals, refine, candidates, renders, refined + twins, diag))
             if told and refined[0].candidate is not before:
-                # The objects put a rival first: the copies of its view were never looked at (the twin check
-                # ran from the pose it replaced). A copy that shows the frame as well stands as its rival.
-                # (A 100-room view repeated in four rooms was answered `ok` in one of them this way.)
+                # The objects (or the depth) put a rival first: the copies of its view were never looked at (the
+                # twin check ran from the pose it replaced). A copy that shows the frame as well stands as its
+                # rival. (A 100-room view repeated in four rooms was answered `ok` in one of them this way.)
                 twins = self._promoted_twins(scan, refined, center_camera, candidates, renders)
                 if twins:
                     told = False
                     rivals = rivals + twins
-                    diag.notes.append(f"{len(twins)} copies of the objects' pose show the frame as well")
+                    diag.notes.append(f"{len(twins)} copies of the pose put first show the frame as well")
             if told:
-                # The frame's objects rule the other poses out: no rival stands, whatever the view margin.
+                # The frame's objects, or its depth, rule the other poses out: no rival stands, whatever the view
+                # margin.
                 has_rival, margin, rivals = False, mc.confident_margin, []
         if rivals:
             self._closest_fit_first(scan, refined, rivals, refine, candidates, diag)
