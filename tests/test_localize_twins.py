@@ -555,3 +555,29 @@ def test_of_poses_that_tie_along_the_rays_the_one_whose_depth_agrees_is_the_answ
     assert not loc._told_by_depth(scan, refined, [copy.candidate], lambda c: copy, candidates, Renders(),
                                   refined + [copy], Diagnostics())
     assert refined[0].T_map_camera is not copy.T_map_camera
+
+
+@pytest.mark.realdata
+def test_of_candidates_at_one_place_the_one_whose_depth_agrees_stands_for_it(twin_rooms_dir: Path,
+                                                                           twin_shared_view) -> None:
+    """`Localizer._one_per_place`: the verify stage lists each place once, by its best candidate, unless a later one
+    there agrees with the frame's depth on the rays both show a surface on clearly better: a candidate 15 cm ahead
+    of the view's pose, first by its view agreement, gives way to the one at the pose; a distinct place (the view in
+    the other room) is listed too, and one 1 cm off the first does not displace it."""
+    from cadreg.localize.stages import Candidate
+    from cadreg.result import Hypothesis
+
+    loc, scan, T_a, to_b = _shared_view_scan(twin_rooms_dir, twin_shared_view)
+
+    def candidate(T, score):
+        return Candidate(T, score, Hypothesis(T, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64),
+                         scan.view.render(loc.field, T)[0])
+
+    ahead, beside = T_a.copy(), T_a.copy()
+    ahead[:3, 3] += 0.15 * T_a[:3, 2]
+    beside[:3, 3] += 0.01 * T_a[:3, 0]
+    kept = loc._one_per_place(scan, [candidate(ahead, 0.9), candidate(T_a, 0.8), candidate(to_b @ T_a, 0.7)])
+    assert kept[0].T_map_camera is T_a
+    assert len(kept) == 2 and pose_errors(kept[1].T_map_camera, to_b @ T_a)[0] < 1e-9
+    kept = loc._one_per_place(scan, [candidate(T_a, 0.9), candidate(beside, 0.8)])
+    assert len(kept) == 1 and kept[0].T_map_camera is T_a
