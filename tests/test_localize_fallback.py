@@ -114,3 +114,26 @@ def test_a_coarse_gicp_far_off_the_map_pairs_only_the_points_near_it(scene, monk
     assert pose_errors(moved, T)[0] < 0.02
     np.testing.assert_array_equal(loc._coarse_align(cloud(far), far, T0, scan), T0)
     assert len(sizes) == 2  # no GICP for the pose with nothing near the map
+
+
+def test_each_kept_leaf_has_its_best_same_place_alternate_verified_too() -> None:
+    """`FallbackStage._same_place_alternates`: of the polished leaves not kept, the best-scoring one within the
+    distinct-pose radius of a kept leaf but beyond the refinement's reach stands beside it; one within the reach is
+    the kept leaf again, and one beyond the radius is another place (the region ranking's to keep or drop)."""
+    from types import SimpleNamespace
+
+    from cadreg.config import LocalizeConfig
+    from cadreg.localize.fallback_stage import FallbackStage
+    from cadreg.localize.match import Hypotheses, yaw_rotations
+
+    mc = LocalizeConfig().match
+    x = np.array([0.0, 0.05, 0.18, 0.22, mc.distinct_translation_m + 0.2, 3.0, 3.2])
+    t = np.column_stack([x, np.zeros(len(x)), np.full(len(x), 1.4)])
+    hyp = Hypotheses(yaw_rotations(np.array([0, 0, 1.0]), np.zeros(len(x))), t, np.full((len(x), 2), -1))
+    hyp.geometric = np.array([0.9, 0.95, 0.7, 0.8, 0.99, 0.6, 0.5])
+    owner = SimpleNamespace(config=LocalizeConfig())
+    assert FallbackStage._same_place_alternates(owner, hyp, [0]) == [3]  # 0.22 m beats 0.18 m; 0.05 m is leaf 0
+    assert FallbackStage._same_place_alternates(owner, hyp, [0, 5]) == [3, 6]
+    # each kept leaf has its own: 0.05 m is 0.13 m from the leaf at 0.18 m, and 0.5 m lies 0.28 m from the one at 0.22
+    assert FallbackStage._same_place_alternates(owner, hyp, [0, 2, 3]) == [1, 4]
+    assert FallbackStage._same_place_alternates(owner, hyp, list(range(len(x)))) == []
