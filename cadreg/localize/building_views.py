@@ -64,10 +64,10 @@ SAME_PLACE_DEPTH_MARGIN = 0.05
 # rivals (`_told_by_depth`). Real 7-Scenes RedKitchen frames in a 3-room building (the kitchen fused from other
 # frames of the sequence, no labels): the right pose and one 0.4-0.5 m off in the same kitchen tied along the rays
 # (0.007-0.024 apart: the frame sees what the map lacks, which counts against both) while their depths agreed
-# 0.79-0.87 against 0.57-0.65, the right pose ahead by 0.17-0.25 each time (11 frames, in 5 of them the wrong pose
-# ranked first; 10 told at this margin, 111 -> 121 `ok` answers, all at the kitchen alone's). In the `ambiguous` answers of the 10- and 100-room, corridor, mixed and robot-height
-# buildings (renders, with and without labels), the best depth agreement led the others by at most 0.1 (0.098 at
-# one frame, neither pose right).
+# 0.79-0.87 against 0.57-0.65, the right pose ahead by 0.17-0.25 each time (11 frames, the wrong pose ranked first in
+# 5; 10 told at this margin: 111 -> 121 `ok` answers, all at the kitchen alone's). In the `ambiguous` answers of the
+# 10- and 100-room, corridor, mixed and robot-height buildings (renders, with and without labels), the best depth
+# agreement led the others by at most 0.1 (0.098 at one frame, neither pose right).
 DEPTH_TIEBREAK_MARGIN = 0.2
 # ... on at least this many rays where both the frame and the map show a surface (`FieldView.shared`'s own floor).
 SHARED_MIN_RAYS = 20

@@ -487,7 +487,7 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         more (`FieldView.shared`): then that one stands in its place, as the refine stage puts such a refinement
         first (`_deepest_at_the_winners_place_first`). A real frame sees what no mapping frame saw, and the view
         agreement ranks a pose turned toward the mapped part first: the right leaf of a real RedKitchen frame in a
-        3-room building (3 cm from the kitchen alone's answer) was dropped here for one 26 cm off."""
+        3-room building (5 mm from the kitchen alone's answer) was dropped here for one 26 cm off."""
         poses = np.array([c.T_map_camera for c in candidates]).reshape(-1, 4, 4)
         alike = ~self._distinct_pairs(poses, poses)
         depth = [None] * len(candidates)  # made for the candidates that share a place, when asked
