@@ -386,12 +386,10 @@ class BuildingViews:
         second = float(np.max(scan.view_shares @ self._near_as(np.delete(distances, k, axis=0), distances[k]).T))
         if explained[k] - second < self.config.regions.object_tiebreak_share:
             return False
-        if k > 0:
-            self._put_first(rivals[k - 1], refined, refine, candidates)
-        diag.notes.append(f"the frame's objects: {100 * explained[k]:.1f} % of its view lies in objects whose map "
+        return self._told(k, rivals, refined, refine, candidates, diag,
+                          f"the frame's objects: {100 * explained[k]:.1f} % of its view lies in objects whose map "
                           f"node is where the answer places them, at most {100 * second:.1f} % at the "
                           f"{len(poses) - 1} other poses that look the same")
-        return True
 
     def _told_by_depth(self, scan: Scan, refined: list[Refined], rivals: list[Candidate], refine,
                        candidates: list[Candidate], renders: Renders, looked: list[Refined], diag: Diagnostics) -> bool:
@@ -415,11 +413,18 @@ class BuildingViews:
         second = float(np.max(np.delete(depth, k)))
         if shared_rays[k] < SHARED_MIN_RAYS or depth[k] - second < DEPTH_TIEBREAK_MARGIN:
             return False
-        if k > 0:
-            self._put_first(rivals[k - 1], refined, refine, candidates)
-        diag.notes.append(f"the depth along the frame's rays: it agrees with the map's on {100 * depth[k]:.0f} % of "
+        return self._told(k, rivals, refined, refine, candidates, diag,
+                          f"the depth along the frame's rays: it agrees with the map's on {100 * depth[k]:.0f} % of "
                           f"the rays both show a surface on at the answer, at most {100 * second:.0f} % at the "
                           f"{len(rivals)} other poses that look the same")
+
+    def _told(self, k: int, rivals: list[Candidate], refined: list[Refined], refine, candidates: list[Candidate],
+              diag: Diagnostics, note: str) -> bool:
+        """A tie-break told pose k of [the answer] + `rivals` from the rest: a rival is put first (`_put_first`),
+        and the note says why. Returns True (told)."""
+        if k > 0:
+            self._put_first(rivals[k - 1], refined, refine, candidates)
+        diag.notes.append(note)
         return True
 
     def _put_first(self, rival: Candidate, refined: list[Refined], refine, candidates: list[Candidate]) -> None:
