@@ -69,7 +69,8 @@ SAME_PLACE_DEPTH_MARGIN = 0.05
 # 10- and 100-room, corridor, mixed and robot-height buildings (renders, with and without labels), the best depth
 # agreement led the others by at most 0.1 (0.098 at one frame, neither pose right).
 DEPTH_TIEBREAK_MARGIN = 0.2
-# ... on at least this many rays where both the frame and the map show a surface (`FieldView.shared`'s own floor).
+# ... on at least this many rays where both the frame and the map show a surface (fewer: `FieldView.shared` finds
+# no evidence against a pose, and says 1.0).
 SHARED_MIN_RAYS = 20
 # Among poses that look the same along the frame's rays, one whose frame points lie within TIE_FIT_TAU_M of the map
 # (`score_poses`' soft share) by this much more than the answer's is put first (`_closest_fit_first`).
@@ -407,8 +408,8 @@ class BuildingViews:
             else c.rendered for c in rivals]
         if any(v is None for v in views):  # a pose never rendered: nothing to tell it by
             return False
-        depth = np.array([scan.view.shared(v)[0] for v in views])
-        shared_rays = np.array([np.sum(np.isfinite(v) & np.isfinite(scan.view.measured)) for v in views])
+        depth, coverage = np.array([scan.view.shared(v, min_rays=SHARED_MIN_RAYS) for v in views]).T
+        shared_rays = np.rint(coverage * np.isfinite(scan.view.measured).sum())  # coverage: shared / measured rays
         k = int(np.argmax(depth))
         second = float(np.max(np.delete(depth, k)))
         if shared_rays[k] < SHARED_MIN_RAYS or depth[k] - second < DEPTH_TIEBREAK_MARGIN:

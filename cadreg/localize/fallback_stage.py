@@ -179,7 +179,7 @@ class FallbackStage:
         if not keep or len(hyp) <= len(keep):
             return []
         mc = self.config.match
-        T = make_Ts(np.array([hyp.rotation(i) for i in range(len(hyp))]), hyp.t)
+        T = make_Ts(hyp.R, hyp.t)
         kept = np.array(keep, dtype=np.int64)
         rest = np.setdiff1d(np.arange(len(hyp)), kept)
         beyond_reach = distinct_pairs(T[rest], T[kept], min_translation_m=NEAR_REACH_M, min_rotation_deg=NEAR_REACH_DEG)

@@ -502,7 +502,7 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
             here = [j for j, i in enumerate(kept) if alike[k, i]]
             if not here:
                 kept.append(k)
-            elif depth_of(k) > max(depth_of(kept[j]) for j in here) + SAME_PLACE_DEPTH_MARGIN and len(here) == 1:
+            elif len(here) == 1 and depth_of(k) > depth_of(kept[here[0]]) + SAME_PLACE_DEPTH_MARGIN:
                 kept[here[0]] = k
         return [candidates[k] for k in kept]
 
