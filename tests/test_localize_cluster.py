@@ -40,3 +40,21 @@ def test_chain_of_points_within_tolerance_is_one_object() -> None:
     assert len(out) == 1 and len(out[0].index) == len(x)
     out = cluster_objects(xyz, np.zeros(len(x), int), tolerance_m=0.03, min_points=1)
     assert len(out) == len(x)
+
+
+def test_components_are_numbered_as_scipy_numbers_them() -> None:
+    """The compiled union-find labels the nodes as scipy's `connected_components` does: the same partition, each
+    component numbered in the order of its lowest node (the clusters' order among objects of one size)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from cadreg.localize.cluster import components
+
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 17, 300):
+        for edges in (0, n // 2, 3 * n):
+            pairs = rng.integers(0, n, size=(edges, 2))
+            pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+            adjacency = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+            _, expected = connected_components(adjacency, directed=False)
+            assert np.array_equal(components(np.ascontiguousarray(pairs, dtype=np.int64), n), expected)

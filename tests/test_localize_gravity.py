@@ -180,3 +180,38 @@ def test_up_from_a_cluttered_view_whose_flat_surfaces_are_a_small_share_of_it() 
     floor = estimate_up_from_normals(xyz)
     assert floor is not None and floor.source == "surfaces"
     assert np.degrees(np.arccos(np.clip(floor.up_camera @ np.array([0.0, -1.0, 0.0]), -1, 1))) < 3.0
+
+
+def test_the_up_searchs_counts_are_those_of_the_normals_products() -> None:
+    """The compiled counts of the up search (`gravity._alignment_counts`): for each candidate up, the normals within
+    the tolerance of parallel and of perpendicular, as the (normals × candidates) products count them."""
+    from cadreg.localize.gravity import _abs_dots, _alignment_counts
+
+    rng = np.random.default_rng(5)
+    normals = rng.normal(size=(700, 3))
+    normals[:300] = [0.0, -1.0, 0.0]  # a floor seen by a level camera, and walls
+    normals[300:500, 1] = 0.0
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    up = rng.normal(size=(400, 3))
+    up[0] = [0.0, -1.0, 0.0]
+    up /= np.linalg.norm(up, axis=1, keepdims=True)
+    cos_tol, sin_tol = np.cos(np.radians(6.0)), np.sin(np.radians(6.0))
+    dots = np.abs(normals @ up.T)
+    par, perp = _alignment_counts(normals, up, cos_tol, sin_tol)
+    assert np.array_equal(par, (dots > cos_tol).sum(axis=0)) and np.array_equal(perp, (dots < sin_tol).sum(axis=0))
+    assert par[0] >= 300 and perp[0] >= 200
+    assert np.allclose(_abs_dots(normals, up[0]), dots[:, 0], rtol=0, atol=1e-15)
+
+
+def test_the_neighbourhoods_scatter_is_numpys() -> None:
+    """`gravity._scatter`, the flat-surface test's neighbourhood scatter, holds the values numpy's mean and einsum
+    over the gathered neighbourhoods give."""
+    from scipy.spatial import cKDTree
+
+    from cadreg.localize.gravity import _scatter
+
+    rng = np.random.default_rng(6)
+    xyz = rng.normal(size=(4000, 3)) * [2.0, 1.0, 0.05]
+    _, nn = cKDTree(xyz).query(xyz[:600], k=24)
+    gathered = xyz[nn] - xyz[nn].mean(axis=1, keepdims=True)
+    assert np.array_equal(_scatter(xyz, nn), np.einsum("nki,nkj->nij", gathered, gathered))

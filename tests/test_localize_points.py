@@ -124,3 +124,15 @@ def test_bad_frames_raise_invalid_frame() -> None:
         Frame(**{**good, "depth": np.zeros((24, 32), np.uint16)})
     with pytest.raises(InvalidFrame):
         Frame(**{**good, "color": np.zeros((10, 32, 3), np.uint8)})
+
+
+@pytest.mark.parametrize("voxel_m", [0.01, 0.07, 0.5, 100.0])
+def test_voxel_indices_keep_the_first_point_of_each_voxel_as_a_sort_would(voxel_m: float) -> None:
+    """`first_of_each`'s hash set gives what np.unique(return_index=True) gives: the index of each voxel's first
+    point, ascending (negative coordinates, one voxel for all, one point a voxel, a repeated point)."""
+    rng = np.random.default_rng(1)
+    xyz = np.vstack([rng.normal(size=(20000, 3)), [[0.3, -0.2, 0.1]] * 3])
+    _, first = np.unique(np.floor(xyz / voxel_m), axis=0, return_index=True)
+    assert np.array_equal(voxel_indices(xyz, voxel_m), np.sort(first))
+    assert np.array_equal(voxel_indices(xyz[:1], voxel_m), [0])
+    assert len(voxel_indices(np.zeros((0, 3)), voxel_m)) == 0

@@ -136,3 +136,48 @@ def test_see_through_counts_map_in_front_of_the_depth_but_not_a_silhouette() -> 
     # a map wall 2 m ahead across the open half: the sensor saw through it
     wall = points_at(2.0, rng.uniform(96, 160, 400), v)
     assert ViewCheck(wall).see_through(np.eye(4), zbuf, K) > 0.9
+
+
+def test_view_checks_project_as_numpy_projects() -> None:
+    """The compiled projections of `ViewCheck` (`view_kernels.py`) against the numpy passes they replace: the same
+    cells hold the same nearest depths (to a rounding of the transform), and see-through counts the same points."""
+    from scipy.ndimage import minimum_filter
+    from scipy.spatial.transform import Rotation
+
+    from cadreg.camera import CameraIntrinsics
+    from cadreg.localize.score import ViewCheck
+
+    K = CameraIntrinsics(160, 120, 100.0, 100.0, 79.5, 59.5)
+    rng = np.random.default_rng(4)
+    world = rng.uniform([-3, -3, -1], [3, 3, 2], size=(20000, 3))
+    check = ViewCheck(world, sample=5000)
+
+    def zbuffer(p: np.ndarray, cell_px: int) -> np.ndarray:  # the numpy pass, as it was
+        rows, cols = int(np.ceil(K.height / cell_px)), int(np.ceil(K.width / cell_px))
+        u = ((K.fx * p[:, 0] / p[:, 2] + K.cx) // cell_px).astype(np.int64)
+        v = ((K.fy * p[:, 1] / p[:, 2] + K.cy) // cell_px).astype(np.int64)
+        inside = (u >= 0) & (u < cols) & (v >= 0) & (v < rows)
+        zb = np.full(rows * cols, np.inf)
+        np.minimum.at(zb, v[inside] * cols + u[inside], p[inside, 2])
+        return zb.reshape(rows, cols)
+
+    for k in range(5):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.random(random_state=k).as_matrix()
+        T[:3, 3] = rng.uniform(-0.5, 0.5, 3)
+        camera = (world - T[:3, 3]) @ T[:3, :3]
+        assert np.allclose(ViewCheck.zbuffer(camera, K), zbuffer(camera[camera[:, 2] > 1e-3], 8), rtol=0, atol=1e-12)
+        surface = (check.surface_xyz - T[:3, 3]) @ T[:3, :3]
+        assert np.allclose(check.map_depth(T, K, cell_px=16), zbuffer(surface[surface[:, 2] > 0.2], 16), rtol=0,
+                           atol=1e-12)
+        zbuf = zbuffer(camera[(camera[:, 2] > 1e-3) & (rng.random(len(camera)) < 0.3)], 8) + 0.3
+        sample = (check.map_xyz - T[:3, 3]) @ T[:3, :3]
+        sample = sample[(sample[:, 2] > 0.2) & (sample[:, 2] < 4.0)]
+        u = ((K.fx * sample[:, 0] / sample[:, 2] + K.cx) // 8).astype(np.int64)
+        v = ((K.fy * sample[:, 1] / sample[:, 2] + K.cy) // 8).astype(np.int64)
+        inside = (u >= 0) & (u < zbuf.shape[1]) & (v >= 0) & (v < zbuf.shape[0])
+        measured = minimum_filter(zbuf, size=3, mode="nearest")[v[inside], u[inside]]
+        seen = np.isfinite(measured)
+        front = sample[inside, 2][seen] < measured[seen] - (0.1 + 0.04 * measured[seen])
+        expected = float(front.mean()) if seen.sum() >= 50 else 0.0
+        assert check.see_through(T, zbuf, K) == pytest.approx(expected, abs=1e-12)

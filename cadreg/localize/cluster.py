@@ -1,7 +1,9 @@
 """Class-wise Euclidean clustering of a frame's labelled points into scan objects (paper §2.3.1).
 
 The paper grows regions from seed points over a KD-tree; the same partition is the connected components of the
-graph "two points of one class closer than the tolerance", which scipy computes without a Python loop.
+graph "two points of one class closer than the tolerance": scipy's KD-tree finds the pairs, and a compiled
+union-find joins them. (scipy's `connected_components` gives the same labels, but its checks and conversions of a
+sparse matrix cost more than the search itself on a frame's few hundred points a class: 2 of a frame's 4.7 ms.)
 """
 
 from __future__ import annotations
@@ -9,8 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
+from numba import njit
 from scipy.spatial import cKDTree
 
 
@@ -52,10 +53,8 @@ def cluster_objects(xyz: np.ndarray, class_index: np.ndarray, *, tolerance_m: fl
             continue
         pts = xyz[idx]
         pairs = cKDTree(pts).query_pairs(tolerance_m, output_type="ndarray")
-        n = len(idx)
-        adj = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-        ncomp, comp = connected_components(adj, directed=False)
-        counts = np.bincount(comp, minlength=ncomp)
+        comp = components(np.ascontiguousarray(pairs, dtype=np.int64), len(idx))
+        counts = np.bincount(comp)
         for c in np.flatnonzero(counts >= min_points):
             member = idx[comp == c]
             p = xyz[member]
@@ -63,3 +62,36 @@ def cluster_objects(xyz: np.ndarray, class_index: np.ndarray, *, tolerance_m: fl
             clusters.append(ScanCluster(int(cls), p.mean(axis=0), (lo + hi) / 2, hi - lo, member))
     clusters.sort(key=lambda c: -len(c.index))
     return clusters
+
+
+@njit(cache=True, nogil=True)
+def components(pairs, n):
+    """(n,) int64 component label of each of n nodes joined by the edges `pairs` (m, 2), numbered in the order of
+    each component's lowest node (as scipy's `connected_components` numbers them)."""
+    parent = np.arange(n)
+    for k in range(len(pairs)):
+        a, b = pairs[k, 0], pairs[k, 1]
+        while parent[a] != a:  # the roots, halving the paths on the way
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        while parent[b] != b:
+            parent[b] = parent[parent[b]]
+            b = parent[b]
+        if a != b:
+            parent[max(a, b)] = min(a, b)
+    label = np.full(n, -1, dtype=np.int64)
+    count = 0
+    for i in range(n):
+        root = i
+        while parent[root] != root:
+            root = parent[root]
+        if label[root] < 0:
+            label[root] = count
+            count += 1
+        label[i] = label[root]
+    return label
+
+
+def warm() -> None:
+    """Compile (or load from numba's cache) the union-find (`Localizer.warm`)."""
+    components(np.zeros((0, 2), dtype=np.int64), 1)

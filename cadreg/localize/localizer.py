@@ -35,7 +35,8 @@ from .cluster import cluster_objects
 from .color_gicp import rgb_to_lab
 from .bbs import GridPyramid, map_direction_histogram
 from .building_views import SAME_PLACE_DEPTH_MARGIN, BuildingViews
-from . import field_kernels, grid_gicp, match, point_tree
+from . import cluster, field_kernels, gravity, grid_gicp, match, point_tree, view_kernels
+from . import points as frame_points
 from . import twins as room_twins
 from .fallback import FpfhRansac
 from .fallback_stage import FallbackStage
@@ -94,7 +95,8 @@ TOP_PERCENTILE = 98
 def compile_loops() -> None:
     """Compile (or load from numba's cache) every compiled loop the localizer runs: `Localizer.warm` at a server's
     start, the Dockerfile at build time."""
-    for module in (field_kernels, grid_gicp, match, point_tree, room_twins):
+    for module in (cluster, field_kernels, frame_points, gravity, grid_gicp, match, point_tree, room_twins,
+                   view_kernels):
         module.warm()
 
 
@@ -312,7 +314,7 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
                     fit_rgb=window_colours(frame, down.xyz[fit], COLOUR_WINDOW),
                     check_xyz=points.xyz[check],
                     zbuf=ViewCheck.zbuffer(down.xyz, frame.depth_intrinsics), K=frame.depth_intrinsics,
-                    center_camera=points.xyz.mean(axis=0), search=frame.search_region,
+                    center_camera=_centroid(points.xyz), search=frame.search_region,
                     view=FieldView(frame) if len(self.maps) > 1 else None)
 
     def _hypotheses(self, scan: Scan) -> Hypotheses:
@@ -820,6 +822,12 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         if not len(poses) or not len(others):
             return np.ones(len(poses), dtype=bool)
         return self._distinct_pairs(np.asarray(poses), np.asarray(others)).all(axis=1)
+
+
+def _centroid(xyz: np.ndarray) -> np.ndarray:
+    """(3,) the mean of the points xyz (n, 3): the column sums in one pass over the rows, as numpy's mean over axis 0
+    sums them (the same value), which took 0.9 ms of a frame's 55 k points."""
+    return np.einsum("ij->j", xyz) / len(xyz)
 
 
 def _region_sample(site: Site, region: Region, count: int) -> np.ndarray:

@@ -13,7 +13,7 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt, minimum_filter
 
 from ..site.bundle import FieldGrid
-from . import field_kernels
+from . import field_kernels, view_kernels
 from .points import voxel_indices
 
 # A stored field holds distances in steps of truncate_m / QUANT_MAX, one byte a cell.
@@ -199,8 +199,8 @@ class ViewCheck:
     occluded, or mapped but unseen). At a wrong pose that happens to fit a wall or a counter, much of the map lies
     in front of the measured depth, in space the sensor saw to be empty. The share of such map points is a
     rotation- and label-free check that the fitness alone lacks (a frame of a place the map does not hold can
-    still put half its points on some surface). Written here: no library has it in this form; numpy does the
-    projection.
+    still put half its points on some surface). Written here: no library has it in this form; compiled loops do
+    the projection (`view_kernels.py`).
 
     map_xyz : (n, 3) map points; the see-through check draws on a random sample of them (its cost is linear in
     it), render and compare (`depth_agreement`) on one point per `surface_voxel_m` voxel: the map's nearest surface
@@ -231,12 +231,16 @@ class ViewCheck:
         """(rows, cols) nearest measured depth per cell of `cell_px` pixels (inf where nothing was measured).
         xyz_camera : (m, 3) frame points, camera frame; K : the depth camera's intrinsics (the colour camera's
         offset of a few centimetres does not matter at this resolution)."""
-        rows, cols = int(np.ceil(K.height / cell_px)), int(np.ceil(K.width / cell_px))
-        p = xyz_camera[xyz_camera[:, 2] > 1e-3]
-        v, u, inside = ViewCheck._cells(p, K, cell_px, (rows, cols))
-        zb = np.full(rows * cols, np.inf)
-        np.minimum.at(zb, v[inside] * cols + u[inside], p[inside, 2])
-        return zb.reshape(rows, cols)
+        return ViewCheck._render(np.asarray(xyz_camera, dtype=np.float64), np.eye(4), K, cell_px=cell_px, z_min=1e-3)
+
+    @staticmethod
+    def _render(points: np.ndarray, T_map_camera: np.ndarray, K, *, cell_px: int, z_min: float) -> np.ndarray:
+        """(rows, cols) the least camera depth (beyond z_min) of the points (n, 3) seen from T_map_camera per cell of
+        cell_px pixels, inf where none falls (`view_kernels.zbuffer`)."""
+        out = np.full((int(np.ceil(K.height / cell_px)), int(np.ceil(K.width / cell_px))), np.inf)
+        view_kernels.zbuffer(field_kernels.floats(points), *_pose(T_map_camera), K.fx, K.fy, K.cx, K.cy,
+                             float(cell_px), z_min, out)
+        return out
 
     @staticmethod
     def _cells(p: np.ndarray, K, cell_px: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -280,30 +284,25 @@ class ViewCheck:
     def map_depth(self, T_map_camera: np.ndarray, K, *, cell_px: int) -> np.ndarray:
         """(rows, cols) the map's nearest surface (one point per surface voxel) per cell of `cell_px` pixels seen
         from the pose, inf where the map has none in view."""
-        R, t = T_map_camera[:3, :3], T_map_camera[:3, 3]
-        p = (self.surface_xyz - t) @ R  # map -> camera
-        return self.zbuffer(p[p[:, 2] > 0.2], K, cell_px=cell_px)
+        return self._render(self.surface_xyz, T_map_camera, K, cell_px=cell_px, z_min=0.2)
 
     def see_through(self, T_map_camera: np.ndarray, zbuf: np.ndarray, K, *, cell_px: int = 8, margin_m: float = 0.1,
                     margin_ratio: float = 0.04, max_depth_m: float = 4.0, min_points: int = 50) -> float:
         """Share of the map points in view (in cells where the frame measured depth, not farther than
         max_depth_m) that lie in front of the measured depth by more than margin_m + margin_ratio · depth."""
-        R, t = T_map_camera[:3, :3], T_map_camera[:3, 3]
-        p = (self.map_xyz - t) @ R  # map -> camera
-        z = p[:, 2]
-        near = (z > 0.2) & (z < max_depth_m)
-        p, z = p[near], z[near]
-        v, u, inside = self._cells(p, K, cell_px, zbuf.shape)
         # Against the nearest depth of the cell and its 8 neighbours: a map point on a silhouette (the top of a
         # low wall, the rim of a scan's hole) falls a cell to the far side of the depth edge as often as not, and
         # views across a building's low walls, all edges, saw through 3-5 % of the map at their true pose.
-        measured = minimum_filter(zbuf, size=3, mode="nearest")[v[inside], u[inside]]
-        zi = z[inside]
-        seen = np.isfinite(measured)
-        if seen.sum() < min_points:
-            return 0.0
-        front = zi[seen] < measured[seen] - (margin_m + margin_ratio * measured[seen])
-        return float(front.mean())
+        measured = minimum_filter(zbuf, size=3, mode="nearest")
+        seen, front = view_kernels.in_front(field_kernels.floats(self.map_xyz), *_pose(T_map_camera), K.fx, K.fy, K.cx, K.cy, float(cell_px),
+                                            0.2, float(max_depth_m), measured, float(margin_m), float(margin_ratio))
+        return 0.0 if seen < min_points else front / seen
+
+
+def _pose(T_map_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) of a pose as the compiled loops take them."""
+    T = np.asarray(T_map_camera, dtype=np.float64)
+    return np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3])
 
 
 def _agreement(measured: np.ndarray, mapped: np.ndarray, *, tolerance_m: float = 0.05, tolerance_ratio: float = 0.02,
