@@ -236,8 +236,9 @@ def _scatter(xyz, nn):
     m, k = nn.shape
     out = np.zeros((m, 3, 3))
     centred = np.empty((k, 3))
+    mean = np.empty(3)
     for s in range(m):
-        mean = np.zeros(3)
+        mean[:] = 0.0
         for q in range(k):
             for a in range(3):
                 mean[a] += xyz[nn[s, q], a]

@@ -23,6 +23,11 @@ def _to_camera(points, i, R, t):
             dx * R[0, 2] + dy * R[1, 2] + dz * R[2, 2])
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _cell(x, y, z, fx, fy, cx, cy, cell_px):
+    return int((fx * x / z + cx) // cell_px), int((fy * y / z + cy) // cell_px)
+
+
 @njit(cache=True, nogil=True)
 def zbuffer(points, R, t, fx, fy, cx, cy, cell_px, z_min, out):
     """out[v, u] (rows, cols) lowered to the camera depth z of each point (n, 3) seen from the pose (R, t) with
@@ -32,8 +37,7 @@ def zbuffer(points, R, t, fx, fy, cx, cy, cell_px, z_min, out):
         x, y, z = _to_camera(points, i, R, t)
         if not z > z_min:
             continue
-        u = int((fx * x / z + cx) // cell_px)
-        v = int((fy * y / z + cy) // cell_px)
+        u, v = _cell(x, y, z, fx, fy, cx, cy, cell_px)
         if 0 <= u < cols and 0 <= v < rows and z < out[v, u]:
             out[v, u] = z
 
@@ -49,8 +53,7 @@ def in_front(points, R, t, fx, fy, cx, cy, cell_px, z_min, z_max, measured, marg
         x, y, z = _to_camera(points, i, R, t)
         if not (z > z_min and z < z_max):
             continue
-        u = int((fx * x / z + cx) // cell_px)
-        v = int((fy * y / z + cy) // cell_px)
+        u, v = _cell(x, y, z, fx, fy, cx, cy, cell_px)
         if not (0 <= u < cols and 0 <= v < rows):
             continue
         m = measured[v, u]
