@@ -538,13 +538,16 @@ class BuildingViews:
         score, winner = refined[0].score, refined[0].candidate
         T, mine = refined[0].T_map_camera, self._render_of(scan, renders, refined[0].outcome)
         rivals, margin, has_rival = [], score, False
-        for r in refined[1:]:
-            if not self._distinct(r.T_map_camera, T):
-                continue
-            has_rival, margin = True, min(margin, score - r.score)
-            if self._look_alike(scan, score, np.array([r.score]), self._render_of(scan, renders, r.outcome)[None],
-                                mine)[0]:
-                rivals.append(next(c for c in candidates if c.T_map_camera is r.T_map_camera))
+        others = refined[1:]
+        apart = self._distinct_from_all([r.T_map_camera for r in others], [T])
+        others = [r for r, keep in zip(others, apart) if keep]
+        if others:
+            # all at once: a 100-room frame's refined contenders and copies of the view are some thirty poses
+            has_rival, margin = True, min(margin, score - max(r.score for r in others))
+            alike = self._look_alike(scan, score, np.array([r.score for r in others]),
+                                     np.stack([self._render_of(scan, renders, r.outcome) for r in others]), mine)
+            rivals += [next(c for c in candidates if c.T_map_camera is r.T_map_camera)
+                       for r, a in zip(others, alike) if a]
         done = [r.T_map_camera for r in refined] + [r.candidate.T_map_camera for r in refined]
         apart = self._distinct_from_all([c.T_map_camera for c in candidates], done)
         rest = [c for c, keep in zip(candidates, apart) if keep]
