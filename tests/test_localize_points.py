@@ -136,3 +136,14 @@ def test_voxel_indices_keep_the_first_point_of_each_voxel_as_a_sort_would(voxel_
     assert np.array_equal(voxel_indices(xyz, voxel_m), np.sort(first))
     assert np.array_equal(voxel_indices(xyz[:1], voxel_m), [0])
     assert len(voxel_indices(np.zeros((0, 3)), voxel_m)) == 0
+
+
+def test_first_of_each_takes_any_int64_key() -> None:
+    """The hash set keeps no sentinel key: -1 and the extremes of int64 are keys like any other."""
+    from cadreg.localize.points import first_of_each
+
+    keys = np.array([-1, 5, -1, 3, 5, np.iinfo(np.int64).min, np.iinfo(np.int64).max, -1, 0], dtype=np.int64)
+    assert first_of_each(keys).tolist() == [0, 1, 3, 5, 6, 8]
+    keys = np.random.default_rng(2).integers(-(2 ** 62), 2 ** 62, size=5000)
+    _, first = np.unique(keys, return_index=True)
+    assert np.array_equal(first_of_each(keys), np.sort(first))
