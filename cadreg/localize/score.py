@@ -231,7 +231,7 @@ class ViewCheck:
         """(rows, cols) nearest measured depth per cell of `cell_px` pixels (inf where nothing was measured).
         xyz_camera : (m, 3) frame points, camera frame; K : the depth camera's intrinsics (the colour camera's
         offset of a few centimetres does not matter at this resolution)."""
-        return ViewCheck._render(np.asarray(xyz_camera, dtype=np.float64), np.eye(4), K, cell_px=cell_px, z_min=1e-3)
+        return ViewCheck._render(xyz_camera, np.eye(4), K, cell_px=cell_px, z_min=1e-3)
 
     @staticmethod
     def _render(points: np.ndarray, T_map_camera: np.ndarray, K, *, cell_px: int, z_min: float) -> np.ndarray:
@@ -294,8 +294,9 @@ class ViewCheck:
         # low wall, the rim of a scan's hole) falls a cell to the far side of the depth edge as often as not, and
         # views across a building's low walls, all edges, saw through 3-5 % of the map at their true pose.
         measured = minimum_filter(zbuf, size=3, mode="nearest")
-        seen, front = view_kernels.in_front(field_kernels.floats(self.map_xyz), *_pose(T_map_camera), K.fx, K.fy, K.cx, K.cy, float(cell_px),
-                                            0.2, float(max_depth_m), measured, float(margin_m), float(margin_ratio))
+        seen, front = view_kernels.in_front(field_kernels.floats(self.map_xyz), *_pose(T_map_camera), K.fx, K.fy,
+                                            K.cx, K.cy, float(cell_px), 0.2, float(max_depth_m), measured,
+                                            float(margin_m), float(margin_ratio))
         return 0.0 if seen < min_points else front / seen
 
 
