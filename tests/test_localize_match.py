@@ -125,6 +125,47 @@ def test_single_object_yaw_sweep_and_floor_height() -> None:
     assert (errs[:, 0] < 0.05).any() and errs[np.argmin(errs[:, 0]), 1] < 1.0
 
 
+def test_single_objects_offsets_are_each_nodes_yaws_by_its_offsets_in_node_order() -> None:
+    """A single object's dense sweep (`offset_step_m`): each node of its class, in node order, each yaw by each
+    offset of the node's reach (half its largest horizontal extent, at most max_offset_m), none for a node too small
+    for one; the nodes of one reach are posed together, with the values one node at a time gives."""
+    from cadreg.localize.match import _horizontal_grid, yaw_rotations
+
+    g = _graph()
+    g.extent[:] = np.array([[0.5, 0.3, 0.4], [1.2, 0.2, 1.0], [0.05, 0.05, 0.3], [0.4, 0.9, 0.5], [3.0, 0.3, 1.0],
+                            [0.5, 0.5, 0.5], [0.6, 0.2, 0.8], [0.3, 0.5, 0.9], [0.5, 0.1, 0.5], [0.2, 0.2, 0.2]])
+    T = _true_pose()
+    up = np.array([0, 0, 1.0])
+    R_level = rotation_between(T[:3, :3].T @ up, up)
+    scan = transform_points(invert_T(T), g.centroid[[0, 3]])
+    step, reach_max, yaw_step = 0.1, 0.5, 30.0
+    hyp = gravity_hypotheses(scan, g.cls[[0, 3]], g, R_level=R_level, up=up, camera_height_m=None,
+                             yaw_step_deg=yaw_step, offset_step_m=step, max_offset_m=reach_max,
+                             min_pair_horizontal_m=50.0)  # no pairs: the single objects' sweeps alone
+    # Written out: per object, the plain sweep of every node of its class, then each node's offsets.
+    yaws = np.radians(np.arange(0.0, 360.0, yaw_step))
+    Ryaw = yaw_rotations(up, yaws)
+    ts, seeds, Rs = [], [], []
+    for i, c in enumerate(scan @ R_level.T):
+        nodes = np.flatnonzero(g.cls == g.cls[[0, 3]][i])
+        Rc = Ryaw @ c
+        for k in nodes:
+            ts.append(g.centroid[k] - Rc)
+            seeds += [[i, k]] * len(yaws)
+            Rs.append(Ryaw @ R_level)
+        for k in nodes:
+            offsets = _horizontal_grid(up, min(reach_max, 0.5 * float(np.max(g.extent[k][:2]))), step)
+            if len(offsets) == 0:
+                continue
+            ts.append(((g.centroid[k] - Rc)[:, None, :] + offsets[None]).reshape(-1, 3))
+            seeds += [[i, k]] * (len(yaws) * len(offsets))
+            Rs.append(np.repeat(Ryaw @ R_level, len(offsets), axis=0))
+    assert len(hyp) == sum(len(t) for t in ts) > len(yaws) * 7
+    assert np.array_equal(hyp.t, np.concatenate(ts))
+    assert np.array_equal(hyp.seed, np.array(seeds))
+    assert np.array_equal(hyp.R, np.concatenate(Rs))
+
+
 def test_kabsch_triples_without_gravity() -> None:
     g = _graph()
     T = _true_pose()

@@ -316,3 +316,22 @@ def test_chroma_correlation_matches_the_white_balance_before_it_compares() -> No
     as_they_come = np.sum(f * m) / np.sqrt(np.sum(f * f) * np.sum(m * m))
     assert as_they_come < 0.75
     assert chroma_correlation(frame_rgb, map_rgb, 3.0) > 0.95
+
+
+def test_a_map_of_stored_colour_bytes_scores_as_one_of_their_floats(scene_and_frame) -> None:
+    # A building's region map keeps its stored colour bytes and converts the rows it reads (`RefineMap.rgb_at`):
+    # every colour it hands out, and every score made from them, is what the map of the converted floats gives.
+    scene, frame, T, _ = scene_and_frame
+    site = scene.site
+    as_floats = RefineMap(site.map.points, site.map.colors / 255.0, site.map.class_index)
+    as_bytes = RefineMap(site.map.points, site.map.colors, site.map.class_index)
+    index = np.random.default_rng(0).integers(0, len(site.map.points), 500)
+    assert np.array_equal(as_bytes.rgb_at(index), as_floats.rgb[index])
+    pts = frame_to_points(frame)
+    placed = transform_points(T, pts.xyz)
+    cls = site.classes_for_labels(frame.label_set, pts.labels)
+    assert as_bytes.agreement(placed, rgb_to_lab(pts.rgb), cls) == as_floats.agreement(placed, rgb_to_lab(pts.rgb), cls)
+    chroma = as_floats.chroma_correlation(placed, pts.rgb, inlier_m=0.03, min_std=0.01)
+    assert chroma is not None and as_bytes.chroma_correlation(placed, pts.rgb, inlier_m=0.03, min_std=0.01) == chroma
+    # The whole map's floats, made on first use (the colour targets read them), are the same too.
+    assert np.array_equal(as_bytes.rgb, as_floats.rgb)

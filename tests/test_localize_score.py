@@ -181,3 +181,23 @@ def test_view_checks_project_as_numpy_projects() -> None:
         front = sample[inside, 2][seen] < measured[seen] - (0.1 + 0.04 * measured[seen])
         expected = float(front.mean()) if seen.sum() >= 50 else 0.0
         assert check.see_through(T, zbuf, K) == pytest.approx(expected, abs=1e-12)
+
+
+def test_see_through_samples_the_maps_points_in_their_order_and_counts_them_in_any() -> None:
+    """A large map's see-through sample is the seeded random choice of its points, taken in the map's order (read in
+    order, not at random); the check counts them, so the same points in the choice's own order give the same share."""
+    from cadreg.camera import CameraIntrinsics
+    from cadreg.localize.score import ViewCheck
+
+    K = CameraIntrinsics(160, 120, 100.0, 100.0, 79.5, 59.5)
+    rng = np.random.default_rng(5)
+    world = rng.uniform([-3, -3, 0.5], [3, 3, 4], size=(40000, 3))
+    check = ViewCheck(world, sample=6000, seed=3)
+    chosen = np.random.default_rng(3).choice(len(world), 6000, replace=False)
+    assert np.array_equal(check.map_xyz, world[np.sort(chosen)])
+    shuffled = ViewCheck(world[chosen], sample=6000)  # the same points in the choice's order: no sampling
+    assert not np.array_equal(shuffled.map_xyz, check.map_xyz)
+    zbuf = np.full((15, 20), 2.0)
+    zbuf[:, :10] = np.inf
+    shares = [check.see_through(np.eye(4), zbuf, K), shuffled.see_through(np.eye(4), zbuf, K)]
+    assert 0.05 < shares[0] < 0.95 and shares[0] == shares[1]

@@ -110,7 +110,10 @@ def covariance_from_hessian(H: np.ndarray, error: float, inliers: int, *,
 class RefineMap:
     """The map as the refinement sees it (map frame, metres).
 
-    xyz : (n, 3) float; rgb : (n, 3) float in [0, 1]. gridded : the points are one per fitness_voxel_m voxel already.
+    xyz : (n, 3) float; rgb : (n, 3) float in [0, 1], or uint8 in 0-255 (a stored region grid's: converted only
+    where read, `rgb_at`: a building's refinements read the colours of a few hundred of its 150-200 k points, and
+    converting them all took 1-2 ms of each region map). gridded : the points are one per fitness_voxel_m voxel
+    already.
     tree_ordered : gridded points in the order of their KD-tree (`point_tree.tree_order`: a building's stored
     region grid), so that the tree is read, not built. stored_target : a building's region map; its GICP pairs the
     frame with the fitness grid through the fitness KD-tree (`grid_gicp.py`), whatever the map served before.
@@ -121,7 +124,9 @@ class RefineMap:
                  fitness_voxel_m: float = FITNESS_VOXEL_M, stored_target: bool = False, gridded: bool = False,
                  tree_ordered: bool = False) -> None:
         self.xyz = np.asarray(xyz, dtype=np.float64)
-        self.rgb = np.asarray(rgb, dtype=np.float64)
+        rgb = np.asarray(rgb)
+        self._rgb_bytes = rgb if rgb.dtype == np.uint8 else None
+        self._rgb = None if self._rgb_bytes is not None else np.asarray(rgb, dtype=np.float64)
         self.fine_voxel_m = fine_voxel_m
         self.coarse_voxel_m = coarse_voxel_m
         self.color_scales_m = tuple(color_scales_m)
@@ -160,12 +165,25 @@ class RefineMap:
 
     # -- structures built on first use of a method ---------------------------------------------------------------
     @property
+    def rgb(self) -> np.ndarray:
+        """(n, 3) float64 colours in [0, 1] of xyz."""
+        if self._rgb is None:
+            self._rgb = self._rgb_bytes / 255.0
+        return self._rgb
+
+    def rgb_at(self, index: np.ndarray) -> np.ndarray:
+        """(m, 3) float64 colours in [0, 1] of xyz[index]: the same values as `rgb[index]`."""
+        if self._rgb is None:
+            return self._rgb_bytes[index] / 255.0
+        return self._rgb[index]
+
+    @property
     def fit_lab(self) -> np.ndarray:
         """(m, 3) CIE Lab colours of fit_xyz: only the agreement score reads them (a building's candidates are
         scored along the frame's rays instead), and the conversion took 15-35 ms of a 100-room building's region map
         (70-120 ms before its GICP targets)."""
         if self._fit_lab is None:
-            self._fit_lab = rgb_to_lab(self.rgb[self._fit_keep])
+            self._fit_lab = rgb_to_lab(self.rgb_at(self._fit_keep))
         return self._fit_lab
 
     def fine_target(self) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
@@ -264,7 +282,7 @@ class RefineMap:
         if ok.sum() < MIN_COLOR_PAIRS:
             return None
         nn = nn[ok]
-        return chroma_correlation(rgb[ok], self.rgb[nn if isinstance(self._fit_keep, slice) else self._fit_keep[nn]],
+        return chroma_correlation(rgb[ok], self.rgb_at(nn if isinstance(self._fit_keep, slice) else self._fit_keep[nn]),
                                   min_std)
 
     def coarse_align(self, source: small_gicp.PointCloud, init_T_map_camera: np.ndarray, *,

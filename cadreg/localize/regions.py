@@ -108,7 +108,9 @@ def build_index(site: Site, regions: list[Region], region: Region, config: Local
         # the 65 ms a 100-room building's region map took), and in tree order, no KD-tree to build (15-20 ms).
         k = next(i for i, r in enumerate(regions) if r.id == region.id)
         rows = stored.rows(k)
-        xyz, rgb, cls = rows["xyz"].astype(np.float64), rows["rgb"] / 255.0, rows["cls"].astype(np.int64)
+        # The colours stay a view of the stored rows, read where needed (`RefineMap.rgb_at`: a few hundred rows a
+        # refinement; a memory-mapped page handed back below is read again from the file when one is touched).
+        xyz, rgb, cls = rows["xyz"].astype(np.float64), rows["rgb"], rows["cls"].astype(np.int64)
         stored.release(k)
         tree_ordered = stored.tree_leaf == LEAF_SIZE
     else:

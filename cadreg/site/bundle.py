@@ -92,7 +92,8 @@ class RegionGrids:
         return self.points[int(self.offsets[k]):int(self.offsets[k + 1])]
 
     def release(self, k: int) -> None:
-        """Hand back the pages of region k's rows once they have been copied (a memory-mapped regions.npy)."""
+        """Hand back the pages of region k's rows once they have been read (a memory-mapped regions.npy; a row read
+        again later is paged in again from the file)."""
         mm = getattr(self.points, "_mmap", None)
         if mm is not None:
             item = self.points.dtype.itemsize
