@@ -53,6 +53,24 @@ def test_copies_are_found_with_their_transform_and_other_rooms_are_not() -> None
     assert carried.tolist() == [n + 0, -1, n + 1, -1]
 
 
+def test_warm_makes_the_rows_first_use_makes_within_its_budget() -> None:
+    """`RoomTwins.warm` makes each region's row as `of` would on first use (a worker's first frames then find them
+    made), and stops once its budget is spent: a budget of nothing makes none."""
+    rng = np.random.default_rng(6)
+    room = np.column_stack([rng.uniform(0, 4, 6), rng.uniform(0, 3, 6), rng.uniform(0.3, 1.0, 6)])
+    cls = np.array([0, 0, 1, 2, 2, 3])
+    parts = [(room + [5.0 * k, 0.0, 0.0], cls) for k in range(4)] + [(room[::-1] + [30.0, 7.0, 0.0], cls)]
+    graph, region = _graph(parts)
+    up = np.array([0.0, 0.0, 1.0])
+    warmed, lazy = RoomTwins(graph, region, up, 5), RoomTwins(graph, region, up, 5)
+    assert warmed.warm(60.0) == 5
+    for a in range(5):
+        rows = [(b, T) for b, T in lazy.of(a)]
+        assert [b for b, _ in warmed.of(a)] == [b for b, _ in rows] and len(rows) == (3 if a < 4 else 0)
+        assert all(np.array_equal(T, U) for (_, T), (_, U) in zip(warmed.of(a), rows))
+    assert RoomTwins(graph, region, up, 5).warm(0.0) == 0
+
+
 def test_a_copy_with_moved_furniture_is_placed_by_the_objects_that_stayed() -> None:
     """A copy of a room with a chair pulled 30 cm out: a transform tilted 4.6° between all the objects brings each
     within the match tolerance (the most inliers: it was the copy's transform, 31 cm off at the camera), but the
