@@ -254,6 +254,26 @@ def test_distance_field_scores_the_true_pose_highest() -> None:
     assert s[0] > 0.9 and s[0] > s[1] and s[0] > s[2]
 
 
+def test_the_best_overall_and_of_each_group_are_what_sorting_keeps() -> None:
+    """`best_overall_and_by_group` (a building's screen of its graph hypotheses): the `count` best scores and each
+    group's `per_group` best, equal scores in index order, as sorting all by score (then index) and each group
+    likewise keeps; scores with many ties, groups with fewer members than asked for, -1 a group of its own."""
+    from cadreg.localize.match import best_overall_and_by_group
+
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        n = int(rng.integers(1, 300))
+        scores = np.round(rng.random(n) * rng.integers(1, 6)) / 5.0
+        group = rng.integers(-1, int(rng.integers(1, 12)), n)
+        count, per_group = int(rng.integers(0, 40)), int(rng.integers(0, 5))
+        order = np.lexsort((np.arange(n), -scores))
+        expected = set(order[:count].tolist())
+        for g in np.unique(group):
+            expected |= set(order[group[order] == g][:per_group].tolist())
+        assert best_overall_and_by_group(scores, group, count=count, per_group=per_group).tolist() == sorted(expected)
+    assert best_overall_and_by_group(np.zeros(0), np.zeros(0, dtype=np.int64), count=3, per_group=1).tolist() == []
+
+
 def test_distinct_best_suppresses_near_duplicates() -> None:
     R = np.stack([np.eye(3)] * 3)
     t = np.array([[0, 0, 0], [0.05, 0, 0], [1.0, 0, 0]])

@@ -43,8 +43,8 @@ from .fallback_stage import FallbackStage
 from .field_view import FieldView, align_on_field
 from .twins import SHAPE_POINTS, RoomTwins
 from .gravity import estimate_floor, map_floor_height, map_up_axis, planar_normals
-from .match import (Hypotheses, MapGraph, distinct_best, distinct_pairs, gravity_hypotheses, kabsch_hypotheses,
-                    score_graph)
+from .match import (Hypotheses, MapGraph, best_overall_and_by_group, distinct_best, distinct_pairs,
+                    gravity_hypotheses, kabsch_hypotheses, score_graph)
 from .points import frame_to_points, voxel_budget, voxel_downsample, window_colours
 from .refine import GICP_NEIGHBORS, REFINE_METHODS, RefineMap
 from .refine_stage import RefineStage
@@ -370,23 +370,13 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         """Indices of the hypotheses kept after the quick screen: the MatchConfig.screen_keep best and, in a
         building, also the RegionConfig.screen_per_region best of every region, so that a room the screen's few
         points rank a little lower (repeated rooms tie) still has its hypotheses scored; `wider` times as many of
-        each for a first look."""
-        order = np.argsort(-screen)
-        keep = order[: wider * self.config.match.screen_keep]
+        each for a first look. In one room, best first; in a building, in index order (equal scores there taken in
+        index order: `match.best_overall_and_by_group`)."""
+        count = wider * self.config.match.screen_keep
         if len(self.maps) == 1:
-            return keep
-        region = self._seed_regions(hyp)[order]
-        # positions in `order`, grouped by region, best first: a stable sort of 16-bit keys is a radix sort (a
-        # 100-room frame's 100-300 k hypotheses grouped in 1 ms, not 10 as 64-bit keys took)
-        key = region + 1  # -1 (no region) first
-        by_region = np.argsort(key.astype(np.int16) if len(self.maps) < np.iinfo(np.int16).max else key, kind="stable")
-        grouped = region[by_region]
-        first_of_group = np.ones(len(grouped), dtype=bool)
-        first_of_group[1:] = grouped[1:] != grouped[:-1]
-        position = np.arange(len(grouped))
-        in_region_rank = position - np.maximum.accumulate(np.where(first_of_group, position, 0))
-        per_region = order[by_region[in_region_rank < wider * self.config.regions.screen_per_region]]
-        return np.union1d(keep, per_region)
+            return np.argsort(-screen)[:count]
+        return best_overall_and_by_group(screen, self._seed_regions(hyp), count=count,
+                                         per_group=wider * self.config.regions.screen_per_region)
 
     def _region_candidates(self, hyp: Hypotheses, rank: np.ndarray, region: np.ndarray, *,
                            count: int) -> tuple[list[int], list[int]]:
