@@ -455,10 +455,10 @@ def distinct_pairs(A: np.ndarray, B: np.ndarray, *, min_translation_m: float = 0
 
 def best_overall_and_by_group(scores: np.ndarray, group: np.ndarray, *, count: int, per_group: int) -> np.ndarray:
     """Sorted indices of the `count` best scores and of the `per_group` best of each group (group (n,) int: a
-    region index, -1 for none; a few thousand values at most), equal scores taken in index order. What sorting every score by value and then each
-    group's by value would keep, in one pass: a 100-room frame's first look keeps its best among 60-80 k graph
-    hypotheses, and the sorts took 8 ms of it. Written by hand: numpy selects the best overall (`partition`), not
-    the best of each of many groups at once."""
+    region index, -1 for none; a few thousand values at most), equal scores taken in index order: what sorting
+    every score by value, and each group's, would keep, in one pass. A 100-room frame's first look keeps its best
+    among 60-80 k graph hypotheses, and the sorts took 8 ms of it. Written by hand: numpy selects the best overall
+    (`partition`), not the best of each of many groups at once."""
     scores = np.asarray(scores, dtype=np.float64)
     n = len(scores)
     if n == 0:

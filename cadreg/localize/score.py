@@ -216,7 +216,7 @@ class ViewCheck:
         self._surface_xyz: np.ndarray | None = None
         if len(xyz) > sample:
             # The sample's points in the map's own order (the check counts them, in any order): read in order, not
-            # at random (a building's region of 150-200 k points gave its sample in 1 ms, not 4).
+            # at random (a building's region of 150-200 k points gave its sample in 2 ms, not 4).
             xyz = xyz[np.sort(np.random.default_rng(seed).choice(len(xyz), sample, replace=False, shuffle=False))]
         self.map_xyz = xyz
 

@@ -53,7 +53,7 @@ class RoomTwins:
 
     graph : the site's graph; node_region : (k,) region index of each node (-1 none); up : the map's unit up.
     `of(a)` : [(b, T_b_a)] with T_b_a (4, 4) moving region a's content onto region b's (map frame), made on first
-    use and kept (a row of a 100-room building costs a few milliseconds a region).
+    use, or by `warm`, and kept (a row of a 100-room building costs a few milliseconds).
     For rooms with too few objects to match (`shape`): field, the building's distance field; bounds (r, 2, 3) each
     region's box (map frame); sample(r) -> (m, 3) points of region r's own (map frame), read on first use.
     """
@@ -84,7 +84,7 @@ class RoomTwins:
 
     def warm(self, budget_s: float) -> int:
         """Make the rows of the regions, first to last, until budget_s seconds have passed (the row under way is
-        finished); the others are made on first use as before. Returns how many rows are made now. Each row is what
+        finished); the others are made on first use as before. Returns how many rows are made by then. Each row is what
         `of` makes on first use: the answers are the same, and a worker's first frames do not pay for them (a
         100-room building's 100 rows take 0.3 s; made on use they were 2 ms a frame of its benchmark)."""
         start = time.perf_counter()
