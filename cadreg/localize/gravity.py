@@ -255,12 +255,17 @@ def _scatter(xyz, nn):
     return out
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _abs_dot(normals, i, ux, uy, uz):
+    return abs(normals[i, 0] * ux + normals[i, 1] * uy + normals[i, 2] * uz)
+
+
 @njit(cache=True, nogil=True)
 def _abs_dots(normals, u):
     """(m,) |n · u| of each normal (m, 3) with one direction u (3,)."""
     out = np.empty(len(normals))
     for i in range(len(normals)):
-        out[i] = abs(normals[i, 0] * u[0] + normals[i, 1] * u[1] + normals[i, 2] * u[2])
+        out[i] = _abs_dot(normals, i, u[0], u[1], u[2])
     return out
 
 
@@ -275,7 +280,7 @@ def _alignment_counts(normals, up, cos_tol, sin_tol):
     for j in range(len(up)):
         ux, uy, uz = up[j, 0], up[j, 1], up[j, 2]
         for i in range(len(normals)):
-            d = abs(normals[i, 0] * ux + normals[i, 1] * uy + normals[i, 2] * uz)  # as `_abs_dots` sums it
+            d = _abs_dot(normals, i, ux, uy, uz)
             if d > cos_tol:
                 par[j] += 1
             elif d < sin_tol:

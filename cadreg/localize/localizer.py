@@ -210,9 +210,10 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
             self.fpfh()
         if self.config.label_free.enabled:
             self.pyramid()
-        if self.twins is not None:
-            self.twins.warm(TWINS_WARM_S)
         compile_loops()
+        if self.twins is not None:
+            # after the loops are compiled: the budget is for the rows, not for the RANSAC's compilation
+            self.twins.warm(TWINS_WARM_S)
         return self
 
     def pyramid(self) -> tuple[GridPyramid, np.ndarray | None]:
