@@ -221,3 +221,32 @@ def test_a_real_frame_whose_poses_tie_along_the_rays_is_told_by_their_depth(kitc
     monkeypatch.setattr(building_views, "DEPTH_TIEBREAK_MARGIN", np.inf)
     placed, off_m = _placed_as_in_the_room_alone(kitchen, kitchen_building, 297)
     assert placed.status == Status.AMBIGUOUS and off_m < 0.03
+
+
+@pytest.mark.realdata
+def test_a_weak_answer_after_a_thin_search_has_the_building_searched_deeper(kitchen, kitchen_building,
+                                                                           monkeypatch) -> None:
+    """A building's label-free search cut at its node cap with few nodes a room (300 a level over two rooms here,
+    against a one-room search's 1200) passed frame 288's pose by: its answer, 0.7 m off, showed the frame 0.44
+    along its rays. The deeper look searches the building again with four times the nodes, and the frame is placed
+    as the kitchen alone places it (`Localizer._deeper_look`). A search as thorough as a room's a room is not
+    searched again."""
+    from cadreg.localize import fallback_stage
+    from cadreg.localize.localizer import Localizer
+
+    room, frames = kitchen
+    building, T_building_kitchen = kitchen_building
+    rc = LocalizeConfig().regions
+    thin = LocalizeConfig().model_copy(update={"regions": rc.model_copy(update={"search_max_nodes": 300,
+                                                                                "search_nodes_per_region": 0})})
+    loc = Localizer.from_site(building.site, thin)
+    frame = replace(frames.load(288)[0], labels=None)
+    T_alone = T_building_kitchen @ room.localize(frame).T_map_camera
+    placed = loc.localize(frame)
+    assert placed.status == Status.OK, placed.diagnostics.notes
+    assert pose_errors(placed.T_map_camera, T_alone)[0] < 0.03
+    assert any("after a cut search" in n for n in placed.diagnostics.notes)
+    monkeypatch.setattr(fallback_stage, "THIN_SEARCH_SHARE", 0.0)  # every search as thorough as a room's
+    placed = loc.localize(frame)
+    assert not any("after a cut search" in n for n in placed.diagnostics.notes)
+    assert placed.status != Status.OK

@@ -264,7 +264,8 @@ class RefineStage:
                 out.T_map_camera, scan.zbuf, scan.K, scan.check_xyz)
         passed_over = winner is taken_next
         return Choice(winner, out, margin, has_rival, fitness, rmse, center_camera, run.roi_frame_points, see, agreement,
-                      coverage, rivals, passed_over, self._chroma_at(scan, out.T_map_camera, center_camera))
+                      coverage, rivals, passed_over, self._chroma_at(scan, out.T_map_camera, center_camera),
+                      view_agreement=refined[0].score if scan.view is not None else None)
 
     def _near_contender(self, candidates: list[Candidate], contenders: list[Candidate]) -> Candidate | None:
         """In one room: the best candidate within RegionConfig.contender_margin of the best's score that lies beyond

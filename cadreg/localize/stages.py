@@ -63,6 +63,9 @@ class Scan:
     ranked by how the map looks along them. None in a one-room site.
     reserve : in a one-room site, the label-free search's next distinct leaves after those it gave as hypotheses
     (LabelFreeConfig.reserve), unpolished: the second look's (`Localizer._second_look`); None when it did not run.
+    cut_search : in a building, the label-free search covered only the graph's candidate rooms, or stopped at its
+    node cap with few nodes a room (`fallback_stage.THIN_SEARCH_SHARE`): the deeper look may search the building
+    again (`Localizer._deeper_look`). False when it did not run, was as thorough as a room's, or was spent.
     """
 
     points: FramePoints
@@ -83,6 +86,7 @@ class Scan:
     unverified: list[Hypothesis] = field(default_factory=list)  # tied rooms beyond RegionConfig.max_verified
     view: FieldView | None = None
     reserve: Hypotheses | None = None
+    cut_search: bool = False
 
     @cached_property
     def view_shares(self) -> np.ndarray:
@@ -171,6 +175,7 @@ class Choice:
     rivals: list[Candidate] | None = None
     passed_over: bool = False  # taken after every better-ranked contender saw through the map
     chroma: float | None = None
+    view_agreement: float | None = None
 
     @property
     def support(self) -> float:
