@@ -46,6 +46,8 @@ SEES_PAST_THE_MAP_LEAF = 0.88
 # found no better pose for any of them (median 83 -> 134 ms).
 DEEPER_SEARCH_NODES = 4
 THIN_SEARCH_SHARE = 0.5
+# The source of the hypotheses of rooms the label-free search found tied with its best and did not verify.
+BBS_UNVERIFIED = "fallback:bbs:unverified"
 
 
 class FallbackStage:
@@ -111,7 +113,8 @@ class FallbackStage:
                                     voxel_m=self.config.fallback.voxel_size_m)
         return index.fpfh
 
-    def _label_free(self, scan: Scan, notes: list[str], rooms: list[Region], *, deeper: bool = False) -> Hypotheses | None:
+    def _label_free(self, scan: Scan, notes: list[str], rooms: list[Region], *,
+                    deeper: bool = False) -> Hypotheses | None:
         """The label-free search (bbs.py): level the frame by its up, pick the yaws its walls allow, branch and
         bound over (x, y, z, yaw) — over the client's search region, else over `rooms` (a building's candidate
         regions), else over the whole site; the distinct best leaves as hypotheses. None without an up direction.
@@ -177,7 +180,7 @@ class FallbackStage:
         if len(self.maps) > 1 and len(hyp):
             keep, unverified = self._region_candidates(hyp, hyp.geometric, self.maps.indices_at(hyp.t),
                                                        count=lf.candidates)
-            scan.unverified += [self._unverified_hypothesis(hyp, i, "fallback:bbs:unverified") for i in unverified]
+            scan.unverified += [self._unverified_hypothesis(hyp, i, BBS_UNVERIFIED) for i in unverified]
             if stats.best < SEES_PAST_THE_MAP_LEAF:
                 keep += self._same_place_alternates(hyp, keep)
             hyp = hyp.take(np.array(keep, dtype=np.int64))

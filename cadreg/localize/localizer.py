@@ -39,7 +39,7 @@ from . import cluster, field_kernels, gravity, grid_gicp, match, point_tree, vie
 from . import points as frame_points
 from . import twins as room_twins
 from .fallback import FpfhRansac
-from .fallback_stage import DEEPER_SEARCH_NODES, FallbackStage
+from .fallback_stage import BBS_UNVERIFIED, DEEPER_SEARCH_NODES, FallbackStage
 from .field_view import FieldView, align_on_field
 from .twins import SHAPE_POINTS, RoomTwins
 from .gravity import estimate_floor, map_floor_height, map_up_axis, planar_normals
@@ -725,9 +725,9 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         """In a building: the label-free search searched the graph's candidate rooms only, or stopped at its node cap
         with few nodes a room (`Scan.cut_search`), and the answer, which lies on the map (RefineConfig.min_fitness),
         shows the frame along its rays less than RegionConfig.min_view_agreement (what the graph's best needs for
-        the fallbacks not to run): the search may have passed the frame's pose by. On the 100-room benchmark the right answers showed the frame
-        0.62 or more; the three unique views without labels that the search missed, 0.40-0.58 at the poses it
-        found, and the one with labels that the graph's rooms did not hold, 0.49."""
+        the fallbacks not to run): the search may have passed the frame's pose by. On the 100-room benchmark the
+        right answers showed the frame 0.62 or more; the three unique views without labels that the search missed,
+        0.40-0.58 at the poses it found, and the one with labels that the graph's rooms did not hold, 0.49."""
         return (scan.cut_search and choice.view_agreement is not None
                 and choice.view_agreement < self.config.regions.min_view_agreement
                 and choice.fitness >= self.config.refine.min_fitness)
@@ -738,6 +738,9 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         search region, with DEEPER_SEARCH_NODES times the nodes: its leaves not among the candidates join them, and
         the refine stage runs again over them all (the weak answer among them: it may still win)."""
         scan.cut_search = False
+        # The rooms the cut search left unverified were tied with its weak best; the deeper search ranks the rooms
+        # again, and those it leaves unverified are tied with its own best.
+        scan.unverified = [h for h in scan.unverified if h.source != BBS_UNVERIFIED]
         # Over the whole building (or the client's search region): the graph's candidate rooms were searched already.
         found = self._label_free(scan, diag.notes, [], deeper=True)
         if found is None:
