@@ -6,7 +6,6 @@ from __future__ import annotations
 import concurrent.futures
 import json
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -26,16 +25,11 @@ from clients.frames import encode_recorded
 from clients.http import Client, pose_of
 from clients.retry import RetryPolicy
 from clients.zenoh_client import ZenohClient
+from test_service_support import free_port, free_ports
 
 pytestmark = pytest.mark.realdata
 SITE = "scene0470"
 CLI = [sys.executable, "-m", "cadreg.cli.main"]
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @dataclass
@@ -58,7 +52,7 @@ def served(tmp_path_factory: pytest.TempPathFactory, scene0470_dir: Path) -> Ite
                     "--site-id", SITE], check=True, env=env, capture_output=True)
     subprocess.run([*CLI, "render", "--mesh", str(mesh), "--labels", str(labels), "--out", str(root / "frames"),
                     "--n", "4", "--seed", "7"], check=True, env=env, capture_output=True)
-    port, zport = _free_port(), _free_port()
+    port, zport = free_ports(2)
     log = root / "serve.log"
     # one worker and a one-deep queue make overload easy to provoke; test hooks let a frame id make a worker sleep
     env.update(CADREG_TEST_HOOKS="true", CADREG_QUEUE_DEPTH="1")
@@ -117,7 +111,7 @@ def test_http_errors_are_typed(served: Served) -> None:
         with pytest.raises(cerr.InvalidFrame) as info:
             c.localize(SITE, broken)
         assert info.value.status == 422 and "depth" in info.value.message
-    with Client(f"http://127.0.0.1:{_free_port()}", retry=RetryPolicy(max_retries=1, backoff_base_s=0.01)) as c:
+    with Client(f"http://127.0.0.1:{free_port()}", retry=RetryPolicy(max_retries=1, backoff_base_s=0.01)) as c:
         with pytest.raises(cerr.Unreachable):
             c.health()
         assert c.retries == 1

@@ -4,7 +4,6 @@ speaks the wire contract: results, typed errors via reply_err, retries, timeouts
 from __future__ import annotations
 
 import queue
-import socket
 import threading
 import time
 from typing import Iterator
@@ -20,12 +19,7 @@ from clients.frames import encode_frame
 from clients.retry import RetryPolicy
 from clients.zenoh_client import ZenohClient, session_config
 from service import codec, errors as wire, zenoh_wire
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from test_service_support import free_port
 
 
 def _frame(fid: str | None = "f0") -> Frame:
@@ -98,7 +92,7 @@ class FakeService:
 
 @pytest.fixture(scope="module")
 def endpoint() -> Iterator[str]:
-    ep = f"tcp/127.0.0.1:{_free_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     svc = FakeService(ep)
     yield ep
     svc.close()
@@ -140,7 +134,7 @@ def test_query_timeout_is_client_timeout_not_retried(endpoint: str) -> None:
 
 
 def test_nobody_serving_is_unreachable() -> None:
-    lonely = f"tcp/127.0.0.1:{_free_port()}"
+    lonely = f"tcp/127.0.0.1:{free_port()}"
     server = zenoh.open(session_config(listen=[lonely], mode="peer"))
     try:
         with ZenohClient(lonely, timeout_s=2, retry=RetryPolicy(max_retries=2, backoff_base_s=0.01)) as z:
@@ -150,7 +144,7 @@ def test_nobody_serving_is_unreachable() -> None:
     finally:
         server.close()
     with pytest.raises(cerr.Unreachable):
-        ZenohClient(f"tcp/127.0.0.1:{_free_port()}")  # nothing listens there
+        ZenohClient(f"tcp/127.0.0.1:{free_port()}")  # nothing listens there
 
 
 def test_stream_matches_poses_by_frame_id_and_marks_lost_ones(endpoint: str) -> None:
@@ -180,7 +174,7 @@ def test_stream_closed_loop_keeps_a_bounded_window(endpoint: str) -> None:
 @pytest.fixture()
 def raw_peer() -> Iterator[tuple[zenoh.Session, str]]:
     """A bare peer with no cadreg service on it: the test itself speaks for the service, message by message."""
-    ep = f"tcp/127.0.0.1:{_free_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     peer = zenoh.open(session_config(listen=[ep], mode="peer"))
     yield peer, ep
     peer.close()

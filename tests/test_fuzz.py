@@ -39,7 +39,7 @@ from hypothesis import strategies as st
 
 from service import codec, zenoh_wire
 from service.settings import Settings
-from test_service_support import LiveServer, free_port, load_frames, multipart, render_frames
+from test_service_support import LiveServer, free_ports, load_frames, multipart, render_frames
 
 _DEFAULT_CASES = int(os.environ.get("CADREG_FUZZ_CASES", "5000"))
 HTTP_CASES = int(os.environ.get("CADREG_FUZZ_HTTP_CASES", _DEFAULT_CASES))
@@ -70,10 +70,10 @@ def server(scene0470_site_dir: Path, tmp_path_factory):
     # a private copy of the sites directory: admin uploads and reloads must not touch the session's bundle
     sites = tmp_path_factory.mktemp("fuzzsites")
     shutil.copytree(scene0470_site_dir, sites / SITE)
-    zport = free_port()
+    port, zport = free_ports(2)
     live = LiveServer(Settings(
         sites_dir=sites,
-        port=free_port(),
+        port=port,
         workers=1,
         queue_depth=2,
         request_timeout_s=REQUEST_TIMEOUT_S,

@@ -12,7 +12,7 @@ import pytest
 from cadreg.cli.main import main
 from clients.load import StreamPlan, parse_ranges, select_indices
 from service.settings import Settings
-from test_service_support import LiveServer, free_port
+from test_service_support import LiveServer, free_ports
 from tracking_support import SITE_ID, redkitchen_site
 
 STREAM_KEYS = {"sent", "answered", "lost", "tracked", "relocalized", "throughput_fps", "latency_ms", "accuracy"}
@@ -21,8 +21,8 @@ STREAM_KEYS = {"sent", "answered", "lost", "tracked", "relocalized", "throughput
 @pytest.fixture(scope="module")
 def server(redkitchen_dir: Path, tmp_path_factory):
     site_dir = redkitchen_site(redkitchen_dir, tmp_path_factory.mktemp("rk-load"))
-    zport = free_port()
-    settings = Settings(sites_dir=site_dir.parent, port=free_port(), workers=1, queue_depth=2, request_timeout_s=60,
+    port, zport = free_ports(2)
+    settings = Settings(sites_dir=site_dir.parent, port=port, workers=1, queue_depth=2, request_timeout_s=60,
                         zenoh_listen=[f"tcp/127.0.0.1:{zport}"], stream_queue_per_device=8)
     live = LiveServer(settings)
     live.zenoh_endpoint = f"tcp/127.0.0.1:{zport}"

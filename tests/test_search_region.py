@@ -26,7 +26,7 @@ from service import codec
 from service.schemas import SearchRegionIn
 from service.settings import Settings
 from service.zenoh_server import zenoh_config
-from test_service_support import LiveServer, free_port, multipart
+from test_service_support import LiveServer, free_ports, multipart
 from tracking_rooms import ROOM_B_OFFSET_M
 
 pytestmark = pytest.mark.realdata
@@ -170,8 +170,8 @@ def test_the_label_free_search_box_counts_the_regions_it_covers(localizer: Local
 
 @pytest.fixture(scope="module")
 def server(twin_rooms_dir: Path):
-    zport = free_port()
-    settings = Settings(sites_dir=twin_rooms_dir.parent, port=free_port(), workers=1, queue_depth=2, request_timeout_s=60,
+    port, zport = free_ports(2)
+    settings = Settings(sites_dir=twin_rooms_dir.parent, port=port, workers=1, queue_depth=2, request_timeout_s=60,
                         zenoh_listen=[f"tcp/127.0.0.1:{zport}"])
     live = LiveServer(settings)
     live.zenoh_endpoint = f"tcp/127.0.0.1:{zport}"

@@ -19,7 +19,7 @@ from cadreg.config import LocalizeConfig
 from cadreg.errors import ConfigError
 from cadreg.site.demo import SITE_ID
 from service.settings import Settings, settings_from
-from test_service_support import free_port, load_frames, multipart, render_frames
+from test_service_support import free_port, free_ports, load_frames, multipart, render_frames
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -87,11 +87,11 @@ def test_serve_refuses_a_zenoh_endpoint_in_use(scene0470_site_dir) -> None:
 
     from service.zenoh_server import zenoh_config
 
-    zport = free_port()
+    port, zport = free_ports(2)
     holder = zenoh.open(zenoh_config(Settings(zenoh_listen=[f"tcp/127.0.0.1:{zport}"])))
     try:
         run = subprocess.run([sys.executable, "-m", "cadreg.cli.main", "serve", "--sites",
-                              str(scene0470_site_dir.parent), "--port", str(free_port()), "--workers", "1",
+                              str(scene0470_site_dir.parent), "--port", str(port), "--workers", "1",
                               "--zenoh-listen", f"tcp/127.0.0.1:{zport}"], capture_output=True, text=True, timeout=120)
     finally:
         holder.close()
@@ -115,7 +115,7 @@ def test_cadreg_serve_end_to_end(scene0470_site_dir, tmp_path) -> None:
     """The command a user runs: a subprocess, real ports, one log line per request, a clean Ctrl-C; its
     --localize-config decides what a request leaves open (top_k)."""
     frames = load_frames(render_frames(scene0470_site_dir, tmp_path / "frames", n=1))
-    port, zport = free_port(), free_port()
+    port, zport = free_ports(2)
     env = {**os.environ, "CADREG_QUEUE_DEPTH": "2"}
     config_top_k = LocalizeConfig().match.top_k - 2
     (tmp_path / "localize.json").write_text(json.dumps({"match": {"top_k": config_top_k}}))

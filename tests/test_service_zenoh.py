@@ -18,7 +18,8 @@ from service import codec, zenoh_wire
 from service.settings import Settings
 from service.worker import SLEEP_HOOK_PREFIX
 from service.zenoh_server import zenoh_config
-from test_service_support import LiveServer, free_port, library_results, load_frames, pose_error, render_frames
+from test_service_support import (LiveServer, free_port, free_ports, library_results, load_frames, pose_error,
+                                  render_frames)
 
 SITE = "scene0470"
 
@@ -30,10 +31,10 @@ def frames(scene0470_site_dir: Path, tmp_path_factory) -> list:
 
 @pytest.fixture(scope="module")
 def server(scene0470_site_dir: Path):
-    zport = free_port()
+    port, zport = free_ports(2)
     settings = Settings(
         sites_dir=scene0470_site_dir.parent,
-        port=free_port(),
+        port=port,
         workers=1,
         queue_depth=1,
         request_timeout_s=20,

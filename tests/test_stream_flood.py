@@ -29,7 +29,7 @@ from clients.frames import encode_frame
 from clients.load import process_tree_rss_mb
 from clients.zenoh_client import ZenohClient
 from service import zenoh_wire
-from test_service_support import free_port
+from test_service_support import free_ports
 from tracking_support import SITE_ID, redkitchen_site
 
 MAX_SESSIONS = 300
@@ -51,7 +51,7 @@ def _small(frame: Frame, step: int = 4) -> Frame:
 @pytest.fixture(scope="module")
 def served(redkitchen_dir: Path, tmp_path_factory):
     site_dir = redkitchen_site(redkitchen_dir, tmp_path_factory.mktemp("rk-flood"))
-    port, zport = free_port(), free_port()
+    port, zport = free_ports(2)
     env = {**os.environ, "CADREG_MAX_SESSIONS": str(MAX_SESSIONS), "CADREG_STREAM_MAX_DEVICES": str(MAX_DEVICES),
            "CADREG_LOG_REQUESTS": "false", "CADREG_SESSION_TTL_S": "30"}
     proc = subprocess.Popen([sys.executable, "-m", "cadreg.cli.main", "serve", "--sites", str(site_dir.parent),

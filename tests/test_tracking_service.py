@@ -15,7 +15,7 @@ from cadreg.io.frames import RecordedFrames
 from clients.http import Client
 from clients.zenoh_client import ZenohClient
 from service.settings import Settings
-from test_service_support import LiveServer, free_port, pose_error
+from test_service_support import LiveServer, free_ports, pose_error
 from tracking_support import SITE_ID, redkitchen_site
 
 TOKEN = "track-token"
@@ -29,8 +29,8 @@ def site_dir(redkitchen_dir: Path, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def server(site_dir: Path):
-    zport = free_port()
-    settings = Settings(sites_dir=site_dir.parent, port=free_port(), workers=1, queue_depth=2, request_timeout_s=60,
+    port, zport = free_ports(2)
+    settings = Settings(sites_dir=site_dir.parent, port=port, workers=1, queue_depth=2, request_timeout_s=60,
                         zenoh_listen=[f"tcp/127.0.0.1:{zport}"], admin_token=TOKEN, session_ttl_s=30,
                         max_sessions=4)
     live = LiveServer(settings)
