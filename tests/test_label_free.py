@@ -254,9 +254,10 @@ def test_a_weak_answer_after_a_thin_search_has_the_building_searched_deeper(kitc
 
 def test_a_building_search_is_cut_when_kept_to_the_candidates_rooms_or_thin_at_its_cap(twin_rooms_dir,
                                                                                       twin_shared_view) -> None:
-    """`Scan.cut_search`, what lets a weak answer have the building searched deeper: set when the label-free search
-    covered only the graph's candidate rooms, or stopped at its node cap with fewer than half a one-room search's
-    nodes a room; not when it gave the building's two rooms a room's nodes each, nor for the deeper search."""
+    """`Scan.deeper_below`, what lets a weak answer have the building searched deeper: set when the label-free
+    search covered only the graph's candidate rooms (to RegionConfig.min_one_object_view_agreement), or stopped at
+    its node cap with fewer than half a one-room search's nodes a room (to min_view_agreement); not when it gave the
+    building's two rooms a room's nodes each, nor for the deeper search."""
     from cadreg.localize.localizer import Localizer
     from cadreg.localize.stages import StageTimer
     from cadreg.result import Diagnostics
@@ -265,16 +266,17 @@ def test_a_building_search_is_cut_when_kept_to_the_candidates_rooms_or_thin_at_i
     site = Site.load(twin_rooms_dir)
     frame = replace(twin_shared_view[0], labels=None)
 
-    def cut_after(loc: Localizer, rooms, **kw) -> bool:
+    def cut_after(loc: Localizer, rooms, **kw) -> float:
         scan = loc._scan(frame, Diagnostics(), StageTimer({}))
         assert loc._label_free(scan, [], rooms, **kw) is not None
-        return scan.cut_search
+        return scan.deeper_below
 
     rc = LocalizeConfig().regions
     thorough = Localizer.from_site(site)  # 3000 nodes a level over two rooms
-    assert not cut_after(thorough, [])
-    assert cut_after(thorough, thorough.maps.regions[:1])
+    assert cut_after(thorough, []) == 0.0
+    assert cut_after(thorough, thorough.maps.regions[:1]) == rc.min_one_object_view_agreement
     thin = Localizer.from_site(site, LocalizeConfig().model_copy(update={"regions": rc.model_copy(
         update={"search_max_nodes": 100, "search_nodes_per_region": 0})}))
-    assert cut_after(thin, [])
-    assert not cut_after(thin, [], deeper=True)
+    assert cut_after(thin, []) == rc.min_view_agreement
+    assert cut_after(thin, thin.maps.regions[:1]) == rc.min_one_object_view_agreement
+    assert cut_after(thin, [], deeper=True) == 0.0

@@ -118,9 +118,11 @@ class FallbackStage:
         """The label-free search (bbs.py): level the frame by its up, pick the yaws its walls allow, branch and
         bound over (x, y, z, yaw) — over the client's search region, else over `rooms` (a building's candidate
         regions), else over the whole site; the distinct best leaves as hypotheses. None without an up direction.
-        In a building a search kept to the candidates' rooms, or stopped at its node cap with fewer than
-        THIN_SEARCH_SHARE of a room's nodes a room, sets `Scan.cut_search`; `deeper` searches with
-        DEEPER_SEARCH_NODES times the nodes (`Localizer._deeper_look`)."""
+        In a building a search stopped at its node cap with fewer than THIN_SEARCH_SHARE of a room's nodes a room
+        sets `Scan.deeper_below` to RegionConfig.min_view_agreement, and one kept to the candidates' rooms to
+        min_one_object_view_agreement: the graph's best fell short of its bar, so the rooms it names are a guess,
+        and an answer found only there has no more to say for its room than one object would. `deeper` searches
+        with DEEPER_SEARCH_NODES times the nodes (`Localizer._deeper_look`)."""
         lf, floor = self.config.label_free, scan.floor
         if not lf.enabled or floor is None:
             return None
@@ -162,7 +164,10 @@ class FallbackStage:
             stats.capped |= f[2].capped
             stats.best = max(stats.best, f[2].best)
         if len(self.maps) > 1 and not deeper:
-            scan.cut_search = (stats.capped and thin) or (bool(rooms) and scan.search is None)
+            kept_to_rooms = bool(rooms) and scan.search is None
+            scan.deeper_below = max(rc.min_view_agreement if stats.capped and thin else 0.0,
+                                    max(rc.min_view_agreement, rc.min_one_object_view_agreement) if kept_to_rooms
+                                    else 0.0)
         mc = self.config.match
         # In a building the same view may fit in many rooms: more distinct leaves are kept (a room's own leaves
         # would otherwise crowd its twins out), then ranked by room.

@@ -63,9 +63,11 @@ class Scan:
     ranked by how the map looks along them. None in a one-room site.
     reserve : in a one-room site, the label-free search's next distinct leaves after those it gave as hypotheses
     (LabelFreeConfig.reserve), unpolished: the second look's (`Localizer._second_look`); None when it did not run.
-    cut_search : in a building, the label-free search covered only the graph's candidate rooms, or stopped at its
-    node cap with few nodes a room (`fallback_stage.THIN_SEARCH_SHARE`): the deeper look may search the building
-    again (`Localizer._deeper_look`). False when it did not run, was as thorough as a room's, or was spent.
+    deeper_below : in a building, the view agreement under which the label-free search's answer has the building
+    searched again (`Localizer._deeper_look`): RegionConfig.min_view_agreement when the search stopped at its node
+    cap with few nodes a room (`fallback_stage.THIN_SEARCH_SHARE`), min_one_object_view_agreement when it covered
+    only the graph's candidate rooms (`FallbackStage._label_free`); 0 when the search did not run, was as thorough
+    as a room's, or was spent.
     """
 
     points: FramePoints
@@ -86,7 +88,7 @@ class Scan:
     unverified: list[Hypothesis] = field(default_factory=list)  # tied rooms beyond RegionConfig.max_verified
     view: FieldView | None = None
     reserve: Hypotheses | None = None
-    cut_search: bool = False
+    deeper_below: float = 0.0
 
     @cached_property
     def view_shares(self) -> np.ndarray:
