@@ -599,3 +599,23 @@ def test_of_candidates_at_one_place_the_one_whose_depth_agrees_stands_for_it(twi
     assert len(kept) == 2 and pose_errors(kept[1].T_map_camera, to_b @ T_a)[0] < 1e-9
     kept = loc._one_per_place(scan, [candidate(T_a, 0.9), candidate(beside, 0.8)])
     assert len(kept) == 1 and kept[0].T_map_camera is T_a
+
+
+@pytest.mark.realdata
+def test_the_ambiguity_margin_between_view_agreements_grows_where_they_are_noisier(twin_rooms_dir: Path,
+                                                                                   twin_shared_view) -> None:
+    """`BuildingViews._view_margin`: the ambiguity margin holds from a view agreement of 0.8 up (and far below,
+    where a share is as sure again) and grows as √(p(1 − p)) in between, by a quarter at one half. A distinct pose
+    0.032 behind an answer at 0.64 is its rival (`_view_rivals`); behind one at 0.85 it is not."""
+    loc, scan, T_a, _ = _shared_view_scan(twin_rooms_dir, twin_shared_view)
+    margin = loc.config.match.ambiguity_margin
+    assert loc._view_margin(0.95) == loc._view_margin(0.8) == loc._view_margin(0.1) == margin
+    assert loc._view_margin(0.5) == pytest.approx(1.25 * margin)
+    assert margin < loc._view_margin(0.64) < loc._view_margin(0.5)
+    aside = T_a.copy()
+    aside[1, 3] += 0.5  # a distinct pose whose render is not the answer's
+    for score, rival in [(0.64, True), (0.85, False)]:
+        refined = [_refined_entry(T_a, score), _refined_entry(aside, score - 0.032)]
+        has_rival, behind, rivals = loc._view_rivals(refined, Renders(), [r.candidate for r in refined], scan)
+        assert has_rival and behind == pytest.approx(0.032)
+        assert [c.T_map_camera for c in rivals] == ([aside] if rival else [])

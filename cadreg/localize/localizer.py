@@ -591,8 +591,11 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         # poses that saw through; the right answers taken so agreed in 97.5-99 % of the view).
         min_depth_agreement = (max(mc.min_depth_agreement, mc.min_depth_agreement_passed_over) if choice.passed_over
                                else mc.min_depth_agreement)
+        # In a building the margin is between view agreements, and grows where they are noisier (`_view_margin`).
+        ambiguity_margin = (mc.ambiguity_margin if choice.view_agreement is None
+                            else self._view_margin(choice.view_agreement))
         status = answer_status(choice.fitness, choice.margin, choice.has_rival, choice.see_through, trust,
-                               min_fitness=rc.min_fitness, ambiguity_margin=mc.ambiguity_margin,
+                               min_fitness=rc.min_fitness, ambiguity_margin=ambiguity_margin,
                                max_see_through=mc.max_see_through, min_ok_confidence=mc.min_ok_confidence,
                                pose_std=slide, max_pose_std=mc.max_pose_std_m,
                                depth_agreement=choice.depth_agreement, min_depth_agreement=min_depth_agreement)

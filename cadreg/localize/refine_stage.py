@@ -192,8 +192,8 @@ class RefineStage:
             # A contender the answer cannot be told from: the copies of its view are looked at too. The truth's
             # room may be a copy of the runner-up's room-relative view, not of the answer's (a room lacking
             # a chair the frame sees shows the right view a little worse than another room a wrong one).
-            if refined[0].score - r.score >= mc.ambiguity_margin or not self._distinct(r.T_map_camera,
-                                                                                     refined[0].T_map_camera):
+            if refined[0].score - r.score >= self._view_margin(refined[0].score) or not self._distinct(
+                    r.T_map_camera, refined[0].T_map_camera):
                 continue
             more = self._twin_views(scan, r.T_map_camera, center_camera, candidates, renders, len(refined),
                                     refined[0].score)
