@@ -4,8 +4,8 @@ no match). The label-free search first (branch-and-bound over x, y, z and yaw on
 FPFH + RANSAC (`fallback.py`) only where the frame gives no up direction, and in a building against one room.
 
 `FallbackStage` is a part of `Localizer` (one of its base classes), kept in a module of its own: its methods read
-the localizer's `config`, `field`, `maps` (`RegionMaps`), `up`, `region_floor_m`, `pyramid()` and `fpfh()`, and
-the hypotheses stage's `_region_candidates` and `_unverified_hypothesis`.
+the localizer's `config`, `field`, `maps` (`RegionMaps`), `up`, `region_floor_m`, `pyramid()`, `fpfh()` and
+`_one_object_view_bar()`, and the hypotheses stage's `_region_candidates` and `_unverified_hypothesis`.
 """
 
 from __future__ import annotations
@@ -166,8 +166,7 @@ class FallbackStage:
         if len(self.maps) > 1 and not deeper:
             kept_to_rooms = bool(rooms) and scan.search is None
             scan.deeper_below = max(rc.min_view_agreement if stats.capped and thin else 0.0,
-                                    max(rc.min_view_agreement, rc.min_one_object_view_agreement) if kept_to_rooms
-                                    else 0.0)
+                                    self._one_object_view_bar() if kept_to_rooms else 0.0)
         mc = self.config.match
         # In a building the same view may fit in many rooms: more distinct leaves are kept (a room's own leaves
         # would otherwise crowd its twins out), then ranked by room.

@@ -517,10 +517,16 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
     def _view_bar(self, candidates: list[Candidate]) -> float:
         """The view agreement a building's best candidate needs for the fallbacks not to join
         (RegionConfig.min_view_agreement; min_one_object_view_agreement when it rests on at most one object)."""
-        rg = self.config.regions
         best = max(candidates, key=lambda c: c.score, default=None)
         if best is None or int(np.sum(best.assignment >= 0)) > 1:
-            return rg.min_view_agreement
+            return self.config.regions.min_view_agreement
+        return self._one_object_view_bar()
+
+    def _one_object_view_bar(self) -> float:
+        """The view agreement a building's answer needs when little points at its room: what the graph's best needs
+        when it rests on one object (`_view_bar`), and the answer of a label-free search kept to the graph's guessed
+        rooms (`FallbackStage._label_free`)."""
+        rg = self.config.regions
         return max(rg.min_view_agreement, rg.min_one_object_view_agreement)
 
     def _best_agrees_along_rays(self, candidates: list[Candidate], scan: Scan, diag: Diagnostics) -> bool:
