@@ -60,3 +60,11 @@ class CameraIntrinsics:
 
     def to_dict(self) -> dict:
         return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy}
+
+
+def axial_noise_sigma_m(z_m: np.ndarray, a_m: float, b_per_m: float, z0_m: float) -> np.ndarray:
+    """σ (metres) of a depth sensor's noise along its rays at depth z_m (metres, along the optical axis), elementwise:
+    a + b·(z − z0)², the model of structured-light sensors such as the Kinect (Nguyen, Izadi, Lovell 2012). What
+    the renderer adds to its frames (`render.noise`) and what the refinement assumes of a frame (`FrameConfig`)."""
+    z = np.asarray(z_m, dtype=np.float64)
+    return a_m + b_per_m * (z - z0_m) ** 2

@@ -126,6 +126,12 @@ class FrameConfig(_Section):
     fit_points: int = Field(800, ge=20, description="frame points whose label and colour agreement with the map rank "
                             "the coarse-aligned hypotheses (enough for a 1 % resolution, cheap enough for 20 poses)")
     check_points: int = Field(2000, ge=20, description="frame points of the final fitness and inlier RMSE")
+    # The sensor's depth noise along its rays, σ(z) = a + b·(z − z0)² (`camera.axial_noise_sigma_m`): what the
+    # refinement assumes of a frame (`RefineConfig.noise_reference_m`). The defaults are the Kinect's (Nguyen et al.
+    # 2012), as structured-light sensors (Kinect, Structure, RealSense) go; a time-of-flight sensor is quieter.
+    axial_noise_a_m: float = Field(0.0012, ge=0, description="constant part of the sensor's depth noise σ, metres")
+    axial_noise_b_per_m: float = Field(0.0019, ge=0, description="quadratic part of σ, metres per metre²")
+    axial_noise_z0_m: float = Field(0.4, ge=0, description="depth at which σ is smallest, metres")
 
 
 class ClusterConfig(_Section):
@@ -213,6 +219,11 @@ class RefineConfig(_Section):
     fine_voxel_m: float = Field(0.025, gt=0, description="map resolution for small_gicp")
     coarse_voxel_m: float = Field(0.08, gt=0, description="map and frame resolution of the coarse check of hypotheses")
     source_voxel_m: float = Field(0.04, gt=0, description="frame resolution for the fine refinement")
+    noise_reference_m: float = Field(0.02, ge=0, description="a frame point whose depth noise σ (FrameConfig's "
+                                     "model) is up to 2^k times this is kept one per voxel 2^k times "
+                                     "source_voxel_m: its weight in the refinement falls as its variance grows "
+                                     "(`points.noise_octaves`). Half the voxel: a quieter point's voxel holds a "
+                                     "surface, a noisier one's a scatter. 0: every point alike")
     max_correspondence_m: float = Field(0.1, gt=0)
     wide_voxel_m: float = Field(0.1, gt=0, description="voxel of the Gaussian map small_gicp's wide pass pairs frame "
                                 "points with (VGICP; `refine.WIDE_PASS`)")

@@ -9,7 +9,10 @@ from cadreg.camera import CameraIntrinsics
 from cadreg.errors import InvalidFrame
 from cadreg.frame import Frame
 from cadreg.geometry import make_T
-from cadreg.localize.points import _project_to_color, frame_to_points, voxel_downsample, voxel_indices, window_colours
+from cadreg.localize.points import (
+    MAX_NOISE_OCTAVE, FramePoints, _project_to_color, frame_to_points, noise_octaves, octave_voxel_indices, voxel_budget,
+    voxel_downsample, voxel_indices, window_colours,
+)
 
 
 def _plane_frame(depth_m: float = 2.0, *, color_size=(64, 48), T_color_depth=None) -> Frame:
@@ -112,6 +115,37 @@ def test_voxel_downsample_keeps_one_point_per_voxel() -> None:
     f = _plane_frame(2.0, color_size=(32, 24))
     d = voxel_downsample(frame_to_points(f, pixel_stride=1), 0.5)
     assert 0 < len(d) < 32 * 24 and d.rgb.shape == (len(d), 3)
+
+
+
+def test_a_points_voxel_doubles_each_time_its_depth_noise_doubles() -> None:
+    sigma = np.array([0.005, 0.02, 0.021, 0.04, 0.041, 0.08, 5.0])
+    assert noise_octaves(sigma, 0.02).tolist() == [0, 0, 1, 1, 2, 2, MAX_NOISE_OCTAVE]
+    assert not noise_octaves(sigma, 0.0).any()  # 0: every point alike
+
+
+def _patch(x0: float, z: float) -> np.ndarray:
+    """A 1 m square of points 1 cm apart, at depth z (camera axes: z forward)."""
+    g = np.stack(np.meshgrid(np.arange(100) * 0.01, np.arange(100) * 0.01), axis=-1).reshape(-1, 2)
+    return np.column_stack([g[:, 0] + x0, g[:, 1], np.full(len(g), z)])
+
+
+def test_a_noisier_points_voxel_keeps_fewer_of_its_surfaces_points() -> None:
+    xyz = np.vstack([_patch(0.0, 1.0), _patch(3.0, 5.0)])
+    points = FramePoints(xyz, np.zeros((len(xyz), 3)), np.full(len(xyz), -1))
+    far = xyz[:, 2] > 2.0
+    octaves = np.where(far, 2, 0)
+    out = voxel_budget(points, 0.04, 10_000, octaves=octaves)
+    # the near square on 4 cm voxels (25 x 25), the far one on 16 cm voxels (7 x 7): a sixteenth of the weight
+    assert (out.xyz[:, 2] < 2.0).sum() == 625 and (out.xyz[:, 2] > 2.0).sum() == 49
+    # without octaves the plain grid, and the same point set in the frame's order either way
+    assert np.array_equal(voxel_budget(points, 0.04, 10_000).xyz, voxel_downsample(points, 0.04).xyz)
+    kept = octave_voxel_indices(xyz, 0.04, octaves)
+    assert np.all(np.diff(kept) > 0) and np.array_equal(out.xyz, xyz[kept])
+    # a frame seen only from afar is not starved: its octaves come down until a quarter of the budget is kept
+    only_far = points.subset(np.flatnonzero(far))
+    kept = voxel_budget(only_far, 0.04, 1000, octaves=np.full(int(far.sum()), MAX_NOISE_OCTAVE))
+    assert len(kept) == 169  # octave 1 (8 cm, 13 x 13): at least a quarter of the 625 the plain grid keeps
 
 
 def test_bad_frames_raise_invalid_frame() -> None:

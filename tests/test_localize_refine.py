@@ -335,3 +335,41 @@ def test_a_map_of_stored_colour_bytes_scores_as_one_of_their_floats(scene_and_fr
     assert chroma is not None and as_bytes.chroma_correlation(placed, pts.rgb, inlier_m=0.03, min_std=0.01) == chroma
     # The whole map's floats, made on first use (the colour targets read them), are the same too.
     assert np.array_equal(as_bytes.rgb, as_floats.rgb)
+
+
+def test_points_weighed_by_their_depth_noise_refine_closer_to_the_truth() -> None:
+    """Kinect-model depth noise (σ 2 mm at 1 m, 5 cm at 5.5 m) over views of a 9 × 6 m room: refined from the true
+    pose on the refinement's input (`RefineStage._budget`), the frame's points kept one per voxel grown with their
+    noise end closer to it than every point alike, on average and at the 90th percentile."""
+    from dataclasses import replace
+
+    from cadreg.camera import axial_noise_sigma_m
+    from cadreg.config import FrameConfig, LocalizeConfig, RefineConfig
+    from cadreg.localize.localizer import Localizer
+
+    scene = make_scene(2, size_m=(9.0, 6.0, 2.6), n_objects=6)
+    fc = FrameConfig()
+    weighed = Localizer.from_site(scene.site)
+    alike = Localizer.from_site(scene.site, LocalizeConfig(refine=RefineConfig(noise_reference_m=0.0)))
+    rmap = RefineMap(scene.site.map.points, scene.site.map.colors / 255.0, scene.site.map.class_index,
+                     stored_target=True)
+    K = CameraIntrinsics(320, 240, 288.0, 288.0, 159.5, 119.5)
+    rng = np.random.default_rng(7)
+    errors: dict[str, list[float]] = {"weighed": [], "alike": []}
+    for view in range(30):
+        T = look_pose(np.array([rng.uniform(0.4, 8.6), rng.uniform(0.4, 5.6), rng.uniform(1.0, 1.9)]),
+                      rng.uniform(0, 2 * np.pi), rng.uniform(0.1, 0.6))
+        frame = render_frame(scene, T, intrinsics=K, depth_noise_m=0.0)
+        z = frame.depth / frame.depth_scale
+        if (z > 0).mean() < 0.5:
+            continue
+        noise = np.random.default_rng(view).standard_normal(z.shape)
+        sigma = axial_noise_sigma_m(z, fc.axial_noise_a_m, fc.axial_noise_b_per_m, fc.axial_noise_z0_m)
+        depth = np.where(z > 0, np.round((z + noise * sigma) * frame.depth_scale), 0).astype(frame.depth.dtype)
+        points = frame_to_points(replace(frame, depth=depth))
+        for name, loc in (("weighed", weighed), ("alike", alike)):
+            out = rmap.refine(loc._budget(points, "small_gicp"), T, method="small_gicp")
+            errors[name].append(pose_errors(out.T_map_camera, T)[0])
+    w, a = np.array(errors["weighed"]), np.array(errors["alike"])
+    assert len(w) >= 20
+    assert w.mean() < 0.85 * a.mean() and np.percentile(w, 90) < 0.8 * np.percentile(a, 90), (w.mean(), a.mean())

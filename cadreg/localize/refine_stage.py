@@ -19,11 +19,12 @@ from functools import partial
 
 import numpy as np
 
+from ..camera import axial_noise_sigma_m
 from ..geometry import transform_points
 from ..result import Diagnostics
 from .building_views import Renders
 from .match import distinct_pairs
-from .points import FramePoints, voxel_budget
+from .points import FramePoints, noise_octaves, voxel_budget
 from .refine import RefineMap, RefineOutcome, crop_to_roi
 from .stages import NEAR_REACH_DEG, NEAR_REACH_M, Candidate, Choice, Refined, Scan
 
@@ -310,10 +311,14 @@ class RefineStage:
     def _budget(self, points: FramePoints, method: str) -> FramePoints:
         """The refinement's input: at its own resolution or, when that leaves more than MatchConfig.refine_points,
         at a coarser one that does not (a voxel grid, not a random sample: thin structure such as a door frame
-        keeps its points). The others sample their own scales (down to 2 cm) and get the points as they are."""
+        keeps its points), each point's voxel grown by its depth noise (`points.noise_octaves`). The others sample
+        their own scales (down to 2 cm) and get the points as they are."""
         if method != "small_gicp":
             return points
-        return voxel_budget(points, self.config.refine.source_voxel_m, self.config.match.refine_points)
+        rc, fc = self.config.refine, self.config.frame
+        sigma = axial_noise_sigma_m(points.xyz[:, 2], fc.axial_noise_a_m, fc.axial_noise_b_per_m, fc.axial_noise_z0_m)
+        return voxel_budget(points, rc.source_voxel_m, self.config.match.refine_points,
+                            octaves=noise_octaves(sigma, rc.noise_reference_m))
 
     def _refine_one(self, refine_map: RefineMap, points: FramePoints, T_start: np.ndarray, method: str):
         rc = self.config.refine

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..camera import axial_noise_sigma_m
 from ..config import NoiseConfig
 
 
 def axial_sigma_m(z_m: np.ndarray, config: NoiseConfig = NoiseConfig()) -> np.ndarray:
     """σ of the depth noise (metres) at depth z_m (metres), elementwise."""
-    z = np.asarray(z_m, dtype=np.float64)
-    return config.axial_a_m + config.axial_b_per_m * (z - config.axial_z0_m) ** 2
+    return axial_noise_sigma_m(z_m, config.axial_a_m, config.axial_b_per_m, config.axial_z0_m)
 
 
 def depth_edges(depth_m: np.ndarray, jump_m: float) -> np.ndarray:
