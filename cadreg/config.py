@@ -219,11 +219,12 @@ class RefineConfig(_Section):
     fine_voxel_m: float = Field(0.025, gt=0, description="map resolution for small_gicp")
     coarse_voxel_m: float = Field(0.08, gt=0, description="map and frame resolution of the coarse check of hypotheses")
     source_voxel_m: float = Field(0.04, gt=0, description="frame resolution for the fine refinement")
-    noise_reference_m: float = Field(0.02, ge=0, description="a frame point whose depth noise σ (FrameConfig's "
-                                     "model) is up to 2^k times this is kept one per voxel 2^k times "
-                                     "source_voxel_m: its weight in the refinement falls as its variance grows "
-                                     "(`points.noise_octaves`). Half the voxel: a quieter point's voxel holds a "
-                                     "surface, a noisier one's a scatter. 0: every point alike")
+    noise_reference_m: float = Field(0.02, ge=0, description="a frame whose refinement points are noisier than "
+                                     "this (σ, FrameConfig's model) in a tenth of them is refined a second time "
+                                     "with a point up to 2^k times noisier kept one per voxel 2^k times "
+                                     "source_voxel_m (`points.noise_octaves`), and the pose that fits the frame "
+                                     "better is kept. Half the voxel: a quieter point's voxel holds a surface, a "
+                                     "noisier one's a scatter. 0: never")
     max_correspondence_m: float = Field(0.1, gt=0)
     wide_voxel_m: float = Field(0.1, gt=0, description="voxel of the Gaussian map small_gicp's wide pass pairs frame "
                                 "points with (VGICP; `refine.WIDE_PASS`)")

@@ -339,18 +339,19 @@ def test_a_map_of_stored_colour_bytes_scores_as_one_of_their_floats(scene_and_fr
 
 def test_points_weighed_by_their_depth_noise_refine_closer_to_the_truth() -> None:
     """Kinect-model depth noise (σ 2 mm at 1 m, 5 cm at 5.5 m) over views of a 9 × 6 m room: refined from the true
-    pose on the refinement's input (`RefineStage._budget`), the frame's points kept one per voxel grown with their
-    noise end closer to it than every point alike, on average and at the 90th percentile."""
+    pose, the frame's points kept one per voxel grown with their noise (`RefineStage._noise_weighed`) end closer to
+    it than the plain grid's (`_budget`), on average and at the 90th percentile; and of two refinements the stage
+    keeps the one at which more of the frame lies on the map (`_fits_better`), the plain one on a tie."""
     from dataclasses import replace
+    from types import SimpleNamespace
 
     from cadreg.camera import axial_noise_sigma_m
-    from cadreg.config import FrameConfig, LocalizeConfig, RefineConfig
+    from cadreg.config import FrameConfig
     from cadreg.localize.localizer import Localizer
 
     scene = make_scene(2, size_m=(9.0, 6.0, 2.6), n_objects=6)
     fc = FrameConfig()
-    weighed = Localizer.from_site(scene.site)
-    alike = Localizer.from_site(scene.site, LocalizeConfig(refine=RefineConfig(noise_reference_m=0.0)))
+    loc = Localizer.from_site(scene.site)
     rmap = RefineMap(scene.site.map.points, scene.site.map.colors / 255.0, scene.site.map.class_index,
                      stored_target=True)
     K = CameraIntrinsics(320, 240, 288.0, 288.0, 159.5, 119.5)
@@ -367,9 +368,24 @@ def test_points_weighed_by_their_depth_noise_refine_closer_to_the_truth() -> Non
         sigma = axial_noise_sigma_m(z, fc.axial_noise_a_m, fc.axial_noise_b_per_m, fc.axial_noise_z0_m)
         depth = np.where(z > 0, np.round((z + noise * sigma) * frame.depth_scale), 0).astype(frame.depth.dtype)
         points = frame_to_points(replace(frame, depth=depth))
-        for name, loc in (("weighed", weighed), ("alike", alike)):
-            out = rmap.refine(loc._budget(points, "small_gicp"), T, method="small_gicp")
-            errors[name].append(pose_errors(out.T_map_camera, T)[0])
+        weighed = loc._noise_weighed(points, "small_gicp")
+        if weighed is None:  # too few noisy points to weigh: no second refinement
+            assert np.mean(axial_noise_sigma_m(points.xyz[:, 2], fc.axial_noise_a_m, fc.axial_noise_b_per_m,
+                                               fc.axial_noise_z0_m) > loc.config.refine.noise_reference_m) < 0.1
+            continue
+        alike = loc._budget(points, "small_gicp")
+        noisy = lambda p: np.mean(p.xyz[:, 2] > 3.4)  # noqa: E731 (σ over 2 cm)
+        assert noisy(weighed) < 0.75 * noisy(alike)
+        for name, source in (("weighed", weighed), ("alike", alike)):
+            errors[name].append(pose_errors(rmap.refine(source, T, method="small_gicp").T_map_camera, T)[0])
     w, a = np.array(errors["weighed"]), np.array(errors["alike"])
-    assert len(w) >= 20
+    assert len(w) >= 15
     assert w.mean() < 0.85 * a.mean() and np.percentile(w, 90) < 0.8 * np.percentile(a, 90), (w.mean(), a.mean())
+
+    # the choice between two refinements: the pose at which more of the frame lies within 5 cm of the map
+    run = SimpleNamespace(scan=SimpleNamespace(check_xyz=points.xyz[::7]))
+    at = RefineMap(scene.site.map.points, scene.site.map.colors / 255.0)
+    right = rmap.refine(loc._budget(points, "small_gicp"), T, method="small_gicp")
+    off = replace(right, T_map_camera=make_T(t=[0.0, 0.12, 0.0]) @ right.T_map_camera)
+    assert loc._fits_better(run, at, off, right) is right and loc._fits_better(run, at, right, off) is right
+    assert loc._fits_better(run, at, right, replace(right)) is right  # a tie keeps the first

@@ -201,11 +201,7 @@ def noise_octaves(sigma_m: np.ndarray, reference_m: float) -> np.ndarray:
     ⌈log2(σ / reference_m)⌉. A point kept one per voxel 2^k times larger weighs about 4^-k as much as its neighbours
     in a refinement that weighs every pair alike (points of a surface are as many as it has voxels): its weight
     falls with its variance, as a least-squares fit of noisy measurements wants, which GICP's covariances (its
-    points' local shapes, not their noise) do not give. Rendered views across a building's rooms and corridors
-    (depth to 6 m): a wall 4.5-5.5 m away, seen at σ 3-5 cm, pulled the refinement 7-8 cm off from the true pose
-    itself when every point weighed alike (two wrong `ok` answers). Measured against the frame's nearest points'
-    noise rather than an absolute reference, still 6 cm; against 0.5 cm, real Kinect frames (depth to 4 m) lost a
-    centimetre of median accuracy: their far points hold the turn; against 2 cm they keep every answer."""
+    points' local shapes, not their noise) do not give (`RefineStage._noise_weighed`)."""
     sigma = np.asarray(sigma_m, dtype=np.float64)
     if reference_m <= 0:
         return np.zeros(len(sigma), dtype=np.int64)
