@@ -17,7 +17,7 @@ from ..frame import Frame
 # A point budget's voxel grows by this factor until the points fit (`voxel_budget`).
 VOXEL_GROWTH = 1.15
 # A point's voxel in the refinement grows with its depth noise (`noise_octaves`) at most 2^MAX_NOISE_OCTAVE times: a
-# point that much noisier than the frame's best already weighs a 256th of theirs.
+# point that much noisier than the reference already weighs a 256th of a quiet one.
 MAX_NOISE_OCTAVE = 4
 # A frame whose points, so thinned, are fewer than this share of those the plain grid keeps (at most the budget) has
 # every octave lowered by one until they are not: a frame seen only from afar keeps enough points for a fit, weighed

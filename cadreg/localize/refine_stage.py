@@ -346,9 +346,9 @@ class RefineStage:
         """The refinement's input as `_budget`, each point's voxel grown with its depth noise (`points.noise_octaves`,
         RefineConfig.noise_reference_m): the input of a second refinement (`_fits_better` keeps the better), or None
         when fewer than NOISY_SHARE of the points are noisy enough to weigh less (the same input, near enough).
-        Measured against an absolute reference, not the frame's nearest points' noise: against those, the pull of
-        `_fits_better`'s walls was still 6 cm; against 0.5 cm rather than 2, real Kinect frames (depth to 4 m), whose
-        far points hold the turn, lost a centimetre of median accuracy when weighed alone."""
+        The reference is absolute: measured against the noise of the frame's nearest points instead, the walls of
+        `_fits_better` still pulled the weighed refinement 6 cm off; at 0.5 cm rather than 2, weighing alone cost real
+        Kinect frames (depth to 4 m), whose far points hold the turn, a centimetre of median accuracy."""
         rc, fc = self.config.refine, self.config.frame
         if method != "small_gicp" or rc.noise_reference_m <= 0 or not len(points):
             return None
