@@ -117,7 +117,6 @@ def test_voxel_downsample_keeps_one_point_per_voxel() -> None:
     assert 0 < len(d) < 32 * 24 and d.rgb.shape == (len(d), 3)
 
 
-
 def test_a_points_voxel_doubles_each_time_its_depth_noise_doubles() -> None:
     sigma = np.array([0.005, 0.02, 0.021, 0.04, 0.041, 0.08, 5.0])
     assert noise_octaves(sigma, 0.02).tolist() == [0, 0, 1, 1, 2, 2, MAX_NOISE_OCTAVE]

@@ -378,14 +378,17 @@ def test_points_weighed_by_their_depth_noise_refine_closer_to_the_truth() -> Non
         assert noisy(weighed) < 0.75 * noisy(alike)
         for name, source in (("weighed", weighed), ("alike", alike)):
             errors[name].append(pose_errors(rmap.refine(source, T, method="small_gicp").T_map_camera, T)[0])
+        last = points, alike, T
     w, a = np.array(errors["weighed"]), np.array(errors["alike"])
     assert len(w) >= 15
     assert w.mean() < 0.85 * a.mean() and np.percentile(w, 90) < 0.8 * np.percentile(a, 90), (w.mean(), a.mean())
 
     # the choice between two refinements: the pose at which more of the frame lies within 5 cm of the map
+    points, alike, T = last
     run = SimpleNamespace(scan=SimpleNamespace(check_xyz=points.xyz[::7]))
-    at = RefineMap(scene.site.map.points, scene.site.map.colors / 255.0)
-    right = rmap.refine(loc._budget(points, "small_gicp"), T, method="small_gicp")
+    plain_map = RefineMap(scene.site.map.points, scene.site.map.colors / 255.0)
+    right = rmap.refine(alike, T, method="small_gicp")
     off = replace(right, T_map_camera=make_T(t=[0.0, 0.12, 0.0]) @ right.T_map_camera)
-    assert loc._fits_better(run, at, off, right) is right and loc._fits_better(run, at, right, off) is right
-    assert loc._fits_better(run, at, right, replace(right)) is right  # a tie keeps the first
+    assert loc._fits_better(run, plain_map, off, right) is right
+    assert loc._fits_better(run, plain_map, right, off) is right
+    assert loc._fits_better(run, plain_map, right, replace(right)) is right  # a tie keeps the first
