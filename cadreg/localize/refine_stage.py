@@ -130,6 +130,12 @@ class RefineStage:
                 return Refined(0.0, RefineOutcome(c.T_map_camera, None, 0, False, run.method), c, see)
         out = self._refine_one(maps.refine_map, run.roi_points, c.T_map_camera, run.method)
         if run.roi_weighed is not None:
+            # GICP pairs each point with its nearest map point, and where two surfaces lie a few centimetres apart
+            # along a noisy point's ray (a room's wall and the corridor wall behind it, 12-18 cm apart, seen 5 m away
+            # at σ 5 cm) the noisy points pair across and pull the pose, 7-8 cm off from the true pose itself: the
+            # weighed points fit the frame better there. Where the far points hold what the near ones cannot (a far
+            # wall the only one in view), the points alike do (the demo room's view 4.4 m deep: 2.6 cm alike, 6.4
+            # weighed).
             out = self._fits_better(run, maps.refine_map, out, self._refine_one(maps.refine_map, run.roi_weighed,
                                                                                 c.T_map_camera, run.method))
         if run.roi_frame_points < len(run.source):
@@ -158,23 +164,18 @@ class RefineStage:
         if run.whole is None:
             run.whole = self._budget(run.source, run.method)
         again = self._refine_one(refine_map, run.whole, c.T_map_camera, run.method)
-        if fit(again.T_map_camera) > fit(out.T_map_camera):
+        better = self._fits_better(run, refine_map, out, again)
+        if better is again:
             run.diag.notes.append("the ROI refinement slid: refined with the whole frame")
-            return again
-        return out
+        return better
 
-    def _fits_better(self, run: RefineRun, refine_map: RefineMap, out: RefineOutcome,
-                     weighed: RefineOutcome) -> RefineOutcome:
-        """Of a refinement on every point alike (`out`) and one on the points weighed by their depth noise
-        (`weighed`), the one at which more of the whole frame lies on the map; `out` on a tie. GICP pairs each point
-        with its nearest map point, and where two surfaces lie a few centimetres apart along a noisy point's ray
-        (a room's wall and the corridor wall behind it, 12-18 cm apart, seen 5 m away at σ 5 cm) the noisy points
-        pair across and pull the pose, 7-8 cm off from the true pose itself: the weighed points fit the frame
-        better there. Where the far points hold what the near ones cannot (a far wall the only one in view), the
-        points alike do, and they are kept (the demo room's view 4.4 m deep: 2.6 cm alike, 6.4 weighed)."""
-        if self._whole_fit(run, refine_map, weighed.T_map_camera) > self._whole_fit(run, refine_map, out.T_map_camera):
-            return weighed
-        return out
+    def _fits_better(self, run: RefineRun, refine_map: RefineMap, first: RefineOutcome,
+                     second: RefineOutcome) -> RefineOutcome:
+        """Of two refinements of one contender (on other points: the noise-weighed ones, the whole frame), the one
+        at which more of the whole frame lies on the map (`_whole_fit`); the first on a tie."""
+        if self._whole_fit(run, refine_map, second.T_map_camera) > self._whole_fit(run, refine_map, first.T_map_camera):
+            return second
+        return first
 
     def _whole_fit(self, run: RefineRun, refine_map: RefineMap, T_map_camera: np.ndarray) -> float:
         """The share of the frame's check points within RefineConfig.inlier_m of the map at T_map_camera."""
@@ -346,9 +347,9 @@ class RefineStage:
         """The refinement's input as `_budget`, each point's voxel grown with its depth noise (`points.noise_octaves`,
         RefineConfig.noise_reference_m): the input of a second refinement (`_fits_better` keeps the better), or None
         when fewer than NOISY_SHARE of the points are noisy enough to weigh less (the same input, near enough).
-        The reference is absolute: measured against the noise of the frame's nearest points instead, the walls of
-        `_fits_better` still pulled the weighed refinement 6 cm off; at 0.5 cm rather than 2, weighing alone cost real
-        Kinect frames (depth to 4 m), whose far points hold the turn, a centimetre of median accuracy."""
+        The reference is absolute: measured against the noise of the frame's nearest points instead, the two walls
+        `_refine_contender` tells of still pulled the weighed refinement 6 cm off; at 0.5 cm rather than 2, weighing
+        alone cost real Kinect frames (depth to 4 m), whose far points hold the turn, a centimetre of median accuracy."""
         rc, fc = self.config.refine, self.config.frame
         if method != "small_gicp" or rc.noise_reference_m <= 0 or not len(points):
             return None
