@@ -356,6 +356,45 @@ def test_a_copy_a_little_behind_the_answer_is_refined_once(twin_rooms_dir: Path,
 
 
 @pytest.mark.realdata
+def test_a_refinement_that_shows_the_frame_worse_along_its_rays_than_its_start_is_redone_on_the_whole_frame(
+        twin_rooms_dir: Path, twin_shared_view, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`RefineStage._unslid` in a building: a contender's ROI refinement whose check points still lie on the map (its
+    whole-frame fitness within SLIDE_TOLERANCE of its start's) but which shows the frame along its rays worse than
+    its start by more than VIEW_SLIDE_TOLERANCE has slid; the whole frame refines the start again, and of the two
+    the pose that shows the frame better is kept. A refinement that shows it about as well as its start is kept as
+    it is, with no second refinement."""
+    from cadreg.localize.refine import RefineOutcome
+    from cadreg.localize.refine_stage import SLIDE_TOLERANCE, VIEW_SLIDE_TOLERANCE
+    from cadreg.localize.stages import Candidate
+    from cadreg.result import Diagnostics, Hypothesis
+
+    loc, scan, T_a, _ = _shared_view_scan(twin_rooms_dir, twin_shared_view)
+    start = float(scan.view.agreement(scan.view.render(loc.field, T_a))[0])
+    c = Candidate(T_a, start, Hypothesis(T_a, 0.0, 0.0, 0.0, start), np.zeros(0, np.int64))
+    run = loc._refine_run(scan, [c], loc.config.refine.method, Diagnostics(site_id="s", bundle_version="v"))
+    refine_map = loc.maps_at(T_a, run.center_camera).refine_map
+    calls = []
+    refine_one = loc._refine_one
+    monkeypatch.setattr(loc, "_refine_one", lambda *a: calls.append(a) or refine_one(*a))
+
+    along_axis = np.eye(4)
+    along_axis[2, 3] = 0.04  # 4 cm along the camera's axis: every check point still within 5 cm of the map
+    slid = RefineOutcome(T_a @ along_axis, None, 1, True, "grid_gicp")
+    fit = lambda T: loc._whole_fit(run, refine_map, T)  # noqa: E731
+    assert fit(slid.T_map_camera) >= fit(T_a) - SLIDE_TOLERANCE  # (the fitness alone would keep it)
+    assert loc._view_agreement(run, slid) < start - VIEW_SLIDE_TOLERANCE
+    out = loc._unslid(run, refine_map, c, slid)
+    assert len(calls) == 1 and calls[0][2] is T_a  # the start refined again, once
+    assert out is not slid and pose_errors(out.T_map_camera, T_a)[0] < 0.01
+    assert loc._view_agreement(run, out) > loc._view_agreement(run, slid)
+    assert run.diag.notes[-1] == "the ROI refinement slid: refined with the whole frame"
+
+    calls.clear()
+    held = RefineOutcome(T_a.copy(), None, 1, True, "grid_gicp")
+    assert loc._unslid(run, refine_map, c, held) is held and calls == []
+
+
+@pytest.mark.realdata
 def test_a_copy_that_wins_has_its_copies_looked_at_only_in_the_rooms_that_stood(twin_rooms_dir: Path,
                                                                                  twin_shared_view) -> None:
     """`_twin_views(among=...)` looks at the copies in the rooms named only; when a promoted copy wins,
