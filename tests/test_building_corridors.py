@@ -228,6 +228,54 @@ def test_views_in_a_corridor_are_rendered_and_never_answered_ok_wrongly(corridor
 
 
 @pytest.fixture(scope="module")
+def long_corridor_building(scene0470_site_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Six scene0470 rooms along a 2.4 m corridor, composed: its corridor segments are its largest regions."""
+    out = tmp_path_factory.mktemp("long-corridor")
+    assert main(["site", "layout", "--room", f"scene0470={scene0470_site_dir}", "--rooms", "6", "--seed", "1",
+                 "--corridor-m", "2.4", "--site-id", "hall6", "--out", str(out / "layout.json")]) == 0
+    assert main(["site", "compose", str(out / "layout.json"), "--out", str(out / "site")]) == 0
+    return out / "site"
+
+
+@pytest.mark.realdata
+def test_a_buildings_wall_directions_are_those_of_each_kind_of_region(long_corridor_building: Path) -> None:
+    """The label-free search's wall directions of a building (`Localizer.pyramid`) are the mean of those of the
+    largest region of each set of regions that repeat one another (`RoomTwins.one_of_each`), not those of its
+    largest region: here a corridor segment, whose walls face across it four times as much as along it, while the
+    rooms' face both ways alike."""
+    from cadreg import Localizer
+    from cadreg.localize.bbs import map_direction_histogram
+    from cadreg.localize.regions import region_cloud
+    from cadreg.site.bundle import Site
+
+    site = Site.load(long_corridor_building)
+    loc = Localizer.from_site(site)
+    regions = site.regions
+    chosen = loc.twins.one_of_each()
+    copies = {k: {b for b, _ in loc.twins.of(k)} for k in chosen}
+    assert all(any(r == k or r in copies[k] for k in chosen) for r in range(len(regions)))  # every region stood for
+    assert [regions[k].id.startswith("r") for k in chosen].count(True) == 1  # the six rooms are copies of one
+    pyr, walls = loc.pyramid()
+
+    def directions(region) -> np.ndarray:
+        return map_direction_histogram(region_cloud(site, region, "both").normals.astype(np.float64)
+                                       @ pyr.R_level_map.T)
+
+    largest_of = [max([regions[k]] + [regions[b] for b in copies[k]], key=lambda r: r.points) for k in chosen]
+    assert np.allclose(walls, np.mean([directions(r) for r in largest_of], axis=0))
+
+    def along_over_across(hist: np.ndarray) -> float:  # the mass within 10° of x over that within 10° of y
+        centres = (np.arange(len(hist)) + 0.5) * 180.0 / len(hist)
+        near = lambda deg: hist[np.abs((centres - deg + 90.0) % 180.0 - 90.0) <= 10.0].sum()  # noqa: E731
+        return float(near(0.0) / near(90.0))
+
+    largest = max(regions, key=lambda r: r.points)
+    assert largest.id.startswith("c")  # (what the wall directions were measured on before)
+    assert along_over_across(directions(largest)) < 0.25  # (the corridor runs along x)
+    assert along_over_across(walls) > 1.5 * along_over_across(directions(largest))
+
+
+@pytest.fixture(scope="module")
 def scene_parts(scene0470_dir: Path, scene0470_site_dir: Path):
     from conftest import scene0470_mesh
 

@@ -47,6 +47,7 @@ def test_copies_are_found_with_their_transform_and_other_rooms_are_not() -> None
     (back,) = twins.of(1)
     assert back[0] == 0 and np.allclose(back[1] @ found[1], np.eye(4), atol=0.05)
     assert twins.of(2) == []
+    assert twins.one_of_each() == [0, 2]  # the room stands for its copy; the other room for itself
     # objects carried into the copy: each onto its counterpart there; the one the copy lacks, and none, onto -1
     (carried,) = twins.carry_all(np.array([0, 1, 2, -1]), [(1, found[1])])
     n = len(room)  # the copy's nodes follow the room's, less its object 1

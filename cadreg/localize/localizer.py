@@ -208,12 +208,12 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         # the whole map in every worker: built on first use there.
         if self.config.fallback.enabled and len(self.maps) == 1:
             self.fpfh()
-        if self.config.label_free.enabled:
-            self.pyramid()
         compile_loops()
         if self.twins is not None:
             # after the loops are compiled: the budget is for the rows, not for the RANSAC's compilation
             self.twins.warm(TWINS_WARM_S)
+        if self.config.label_free.enabled:
+            self.pyramid()  # (a building's wall directions read the rows: `RoomTwins.one_of_each`)
         return self
 
     def pyramid(self) -> tuple[GridPyramid, np.ndarray | None]:
@@ -221,14 +221,35 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         first use, or by `warm`: about a second and (levels + 1) bytes a cell, LabelFreeConfig.max_cells at most)."""
         if self._pyramid is None:
             lf = self.config.label_free
-            surfaces = _surface_sample(self.site, self.maps)
+            surfaces = self.site.cloud("both") if len(self.maps) == 1 else None
             # A building's occupied cells come from its stored field: its points stay where they lie.
-            occupied = surfaces.points if len(self.maps) == 1 else self.field.surface_points(lf.voxel_m / 2)
+            occupied = self.field.surface_points(lf.voxel_m / 2) if surfaces is None else surfaces.points
             pyr = GridPyramid(self.field, occupied, self.up, voxel_m=lf.voxel_m, levels=lf.levels, tau_m=lf.tau_m,
                               reach_m=lf.reach_m, margin_m=lf.camera_margin_m, max_cells=lf.max_cells)
-            normals = surfaces.normals.astype(np.float64)
-            self._pyramid = (pyr, map_direction_histogram(normals @ pyr.R_level_map.T))
+            walls = (self._building_wall_directions(pyr.R_level_map) if surfaces is None
+                     else map_direction_histogram(surfaces.normals.astype(np.float64) @ pyr.R_level_map.T))
+            self._pyramid = (pyr, walls)
         return self._pyramid
+
+    def _building_wall_directions(self, R_level_map: np.ndarray) -> np.ndarray | None:
+        """A building's histogram of wall directions (`bbs.map_direction_histogram`, level frame): the mean of those
+        of the largest region of each set of regions that repeat one another (`RoomTwins.one_of_each` and its
+        copies), each region's points read in turn.
+
+        Its largest region alone need not share its rooms' directions: a corridor segment's walls run one way only,
+        and in a 30-room building with corridors, frames in its rooms that saw the other walls had every yaw the
+        search tried 75° or more from their own (10 of the 57 views other rooms repeat, none found). Every turned
+        copy of a room would blur them instead: a building of copies of one room keeps its largest room's."""
+        regions, hists = self.maps.regions, []
+        for k in self.twins.one_of_each():
+            largest = max([regions[k]] + [regions[b] for b, _ in self.twins.of(k)], key=lambda r: r.points)
+            hist = map_direction_histogram(region_cloud(self.site, largest, "both").normals.astype(np.float64)
+                                           @ R_level_map.T)
+            self.site.release("map", slice(*largest.map_range))
+            self.site.release("raw", slice(*largest.raw_range))
+            if hist is not None:
+                hists.append(hist)
+        return np.mean(hists, axis=0) if hists else None
 
     def fpfh(self) -> FpfhRansac:
         """The FPFH + RANSAC registrar of this site (map features computed on first use)."""
@@ -890,9 +911,9 @@ def _region_sample(site: Site, region: Region, count: int) -> np.ndarray:
 
 
 def _surface_sample(site: Site, maps: RegionMaps) -> PointSet:
-    """The map points the site-wide constants (up direction, floor height, wall directions) are measured on: all of
-    a one-room site; in a building its largest region (its rooms share the floor and, turned by quarter turns,
-    the wall directions), so that loading a building does not read all of it."""
+    """The map points the site-wide up direction and floor height are measured on: all of a one-room site; in a
+    building its largest region (its rooms share the floor), so that loading a building does not read all of it.
+    (A building's wall directions are its kinds of region's: `Localizer._building_wall_directions`.)"""
     if len(maps) == 1:
         return site.cloud("both")
     largest = max(maps.regions, key=lambda r: r.points)
