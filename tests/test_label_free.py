@@ -266,17 +266,17 @@ def test_a_building_search_is_cut_when_kept_to_the_candidates_rooms_or_thin_at_i
     site = Site.load(twin_rooms_dir)
     frame = replace(twin_shared_view[0], labels=None)
 
-    def cut_after(loc: Localizer, rooms, **kw) -> float:
+    def cut_after(loc: Localizer, rooms, **kw) -> tuple[float, bool]:
         scan = loc._scan(frame, Diagnostics(), StageTimer({}))
         assert loc._label_free(scan, [], rooms, **kw) is not None
-        return scan.deeper_below
+        return scan.deeper_below, scan.search_cut
 
     rc = LocalizeConfig().regions
     thorough = Localizer.from_site(site)  # 3000 nodes a level over two rooms
-    assert cut_after(thorough, []) == 0.0
-    assert cut_after(thorough, thorough.maps.regions[:1]) == rc.min_one_object_view_agreement
+    assert cut_after(thorough, []) == (0.0, False)
+    assert cut_after(thorough, thorough.maps.regions[:1]) == (rc.min_one_object_view_agreement, False)
     thin = Localizer.from_site(site, LocalizeConfig().model_copy(update={"regions": rc.model_copy(
         update={"search_max_nodes": 100, "search_nodes_per_region": 0})}))
-    assert cut_after(thin, []) == rc.min_view_agreement
-    assert cut_after(thin, thin.maps.regions[:1]) == rc.min_one_object_view_agreement
-    assert cut_after(thin, [], deeper=True) == 0.0
+    assert cut_after(thin, []) == (rc.min_view_agreement, True)  # (`Scan.search_cut`: the whole building, cut)
+    assert cut_after(thin, thin.maps.regions[:1]) == (rc.min_one_object_view_agreement, False)
+    assert cut_after(thin, [], deeper=True) == (0.0, False)

@@ -396,6 +396,34 @@ def test_a_refinement_that_shows_the_frame_worse_along_its_rays_than_its_start_i
 
 
 @pytest.mark.realdata
+def test_a_weak_answer_of_a_cut_search_leaves_its_copies_to_the_deeper_search(twin_rooms_dir: Path,
+                                                                              twin_shared_view) -> None:
+    """`RefineStage._copies_wait`: after a label-free search of the whole building cut at its node cap
+    (`Scan.search_cut`), an answer that shows the frame along its rays less than `Scan.deeper_below`, with no copy
+    of its view that does better, leaves its copies unrefined: the deeper search follows
+    (`Localizer._weak_after_a_cut_search`), even for an answer off the map, and its refine stage looks at the
+    copies of its own winner. A copy that shows the frame as well as the bar asks, or a search that was not cut,
+    has the copies refined as before."""
+    from cadreg.localize.refine import RefineOutcome
+    from cadreg.localize.stages import Choice
+
+    loc, scan, T_a, to_b = _shared_view_scan(twin_rooms_dir, twin_shared_view)
+    bar = loc.config.regions.min_view_agreement
+    scan.deeper_below = bar
+    winner, copy = _refined_entry(T_a, bar - 0.05), _refined_entry(to_b @ T_a, bar - 0.03)
+    assert not loc._copies_wait(scan, [winner], [copy])  # no cut search: no deeper one follows
+    scan.search_cut = True
+    assert loc._copies_wait(scan, [winner], [copy])
+    assert not loc._copies_wait(scan, [winner], [_refined_entry(to_b @ T_a, bar + 0.01)])  # it may lift the answer
+    off_the_map = Choice(winner.candidate, RefineOutcome(T_a, None, 1, True, "grid_gicp"), 0.0, False,
+                         0.5 * loc.config.refine.min_fitness, 0.02, scan.center_camera, 100,
+                         view_agreement=winner.score)
+    assert not loc._weak_after_a_cut_search(scan, off_the_map)
+    scan.copies_wait = True
+    assert loc._weak_after_a_cut_search(scan, off_the_map)
+
+
+@pytest.mark.realdata
 def test_a_copy_that_wins_has_its_copies_looked_at_only_in_the_rooms_that_stood(twin_rooms_dir: Path,
                                                                                  twin_shared_view) -> None:
     """`_twin_views(among=...)` looks at the copies in the rooms named only; when a promoted copy wins,

@@ -165,6 +165,7 @@ class FallbackStage:
             stats.best = max(stats.best, f[2].best)
         if len(self.maps) > 1 and not deeper:
             kept_to_rooms = bool(rooms) and scan.search is None
+            scan.search_cut = stats.capped and thin and not kept_to_rooms
             scan.deeper_below = max(rc.min_view_agreement if stats.capped and thin else 0.0,
                                     self._one_object_view_bar() if kept_to_rooms else 0.0)
         mc = self.config.match

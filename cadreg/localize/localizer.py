@@ -759,9 +759,11 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         that the search missed, 0.40-0.58 at the poses it found, and the one with labels that the graph's rooms did
         not hold, 0.49. In a 30-room building with moved furniture a labelled view of two chairs over a low wall,
         whose graph's best (two chairs matched) showed it 0.34, was answered `ok` at 0.62 in one of the graph's
-        four rooms, 8 m off: the true room, which the graph had not named, shows it 0.76."""
+        four rooms, 8 m off: the true room, which the graph had not named, shows it 0.76. An answer off the map is
+        looked at again too when the refine stage left the copies of its view to the deeper search
+        (`Scan.copies_wait`): they were the other way to a better one."""
         return (choice.view_agreement is not None and choice.view_agreement < scan.deeper_below
-                and choice.fitness >= self.config.refine.min_fitness)
+                and (choice.fitness >= self.config.refine.min_fitness or scan.copies_wait))
 
     def _deeper_look(self, scan: Scan, candidates: list[Candidate], choice: Choice, method: str,
                      diag: Diagnostics) -> tuple[list[Candidate], Choice]:

@@ -68,6 +68,10 @@ class Scan:
     cap with few nodes a room (`fallback_stage.THIN_SEARCH_SHARE`), min_one_object_view_agreement when it covered
     only the graph's candidate rooms (`FallbackStage._label_free`); 0 when the search did not run, was as thorough
     as a room's, or was spent.
+    search_cut : in a building, the label-free search covered the whole building (or the client's search region)
+    and stopped at its node cap with few nodes a room: what set `deeper_below` to min_view_agreement.
+    copies_wait : the refine stage left the copies of its answer unrefined for the deeper search that follows
+    (`RefineStage._copies_wait`).
     """
 
     points: FramePoints
@@ -89,6 +93,8 @@ class Scan:
     view: FieldView | None = None
     reserve: Hypotheses | None = None
     deeper_below: float = 0.0
+    search_cut: bool = False
+    copies_wait: bool = False
 
     @cached_property
     def view_shares(self) -> np.ndarray:
