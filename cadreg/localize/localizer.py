@@ -236,10 +236,10 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         of the largest region of each set of regions that repeat one another (`RoomTwins.one_of_each` and its
         copies), each region's points read in turn.
 
-        Its largest region alone need not share its rooms' directions: a corridor segment's walls run one way only,
-        and in a 30-room building with corridors, frames in its rooms that saw the other walls had every yaw the
-        search tried 75° or more from their own (10 of the 57 views other rooms repeat, none found). Every turned
-        copy of a room would blur them instead: a building of copies of one room keeps its largest room's."""
+        Its largest region alone need not share its rooms' directions: a corridor segment's walls face across it
+        only, and in a 30-room building with corridors, views without labels of its rooms' other walls had every yaw
+        the search tried 74-79° from their own (5 of the 14 repeated views whose truth no hypothesis held). Every
+        turned copy of a room would blur them instead: a building of copies of one room keeps its largest room's."""
         regions, hists = self.maps.regions, []
         for k in self.twins.one_of_each():
             largest = max([regions[k]] + [regions[b] for b, _ in self.twins.of(k)], key=lambda r: r.points)
