@@ -101,7 +101,7 @@ class RoomTwins:
         copies = [{b for b, _ in self.of(a)} for a in range(len(self._nodes))]
         left, chosen = set(range(len(self._nodes))), []
         while left:
-            a = max(sorted(left), key=lambda r: len(left & copies[r]))
+            a = max(left, key=lambda r: (len(left & copies[r]), -r))
             chosen.append(a)
             left -= {a} | copies[a]
         return sorted(chosen)
