@@ -134,7 +134,8 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         self._fpfh: FpfhRansac | None = None
         self._whole: RefineMap | None = None
         self._pyramid: tuple[GridPyramid, np.ndarray | None] | None = None
-        self.twins = (RoomTwins(graph, self.node_region, up, len(maps.regions), field=field,
+        self.twins = (RoomTwins(graph, self.node_region, up, len(maps.regions),
+                                floors=np.array([self.region_floor_m[r.id] for r in maps.regions]), field=field,
                                 bounds=np.array([r.bounds for r in maps.regions]),
                                 sample=lambda k: _region_sample(maps.site, maps.regions[k], SHAPE_POINTS))
                       if len(maps) > 1 else None)

@@ -22,7 +22,7 @@ import numpy as np
 from ..config import LocalizeConfig
 from ..pointset import PointSet
 from ..site.bundle import REGION_GRID_DTYPE, RegionGrids, Site
-from ..site.regions import Region
+from ..site.regions import Region, Storeys
 from .fallback import FpfhRansac
 from .point_tree import LEAF_SIZE, tree_order
 from .points import voxel_indices
@@ -135,6 +135,7 @@ class RegionMaps:
         self.regions = site.regions
         self._lo = np.array([r.bounds[0] for r in self.regions])
         self._hi = np.array([r.bounds[1] for r in self.regions])
+        self.storeys = Storeys.of(self.regions)
         self._cache: OrderedDict[str, RegionIndex] = OrderedDict()
         self.built = 0  # regions built so far (a cache miss builds one)
         if len(self.regions) == 1:
@@ -148,7 +149,8 @@ class RegionMaps:
         return self.regions[int(self.indices_at(np.asarray(xyz, dtype=np.float64)[None])[0])]
 
     def indices_at(self, xyz: np.ndarray) -> np.ndarray:
-        """xyz : (n, 3) map points -> (n,) int index into `regions` of the region each lies in (`region_at`)."""
+        """xyz : (n, 3) map points -> (n,) int index into `regions` of the region each lies in (`region_at`), among
+        the regions of its storey (`Storeys`)."""
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         if len(self.regions) == 1:
             return np.zeros(len(xyz), dtype=np.int64)
@@ -157,6 +159,13 @@ class RegionMaps:
         # (overlapping boxes) the one whose centre is nearest.
         gap = np.linalg.norm(np.maximum(np.maximum(self._lo[None, :, :2] - p, p - self._hi[None, :, :2]), 0.0), axis=2)
         centre = np.linalg.norm(0.5 * (self._lo[None, :, :2] + self._hi[None, :, :2]) - p, axis=2)
+        if self.storeys.several:
+            # Seen from above, a room of another storey holds the point as well (two copies of a room one above the
+            # other tie), and its map is not the one the point's view shows: its distance counts the height between
+            # them too (a point that lies inside a room's box stays in it, a tall room a storey below its neighbours).
+            z = xyz[:, None, 2]
+            height = np.maximum(np.maximum(self._lo[None, :, 2] - z, z - self._hi[None, :, 2]), 0.0)
+            gap = np.where(self.storeys.elsewhere(xyz[:, 2]), np.hypot(gap, height), gap)
         return np.argmin(gap + 1e-6 * centre / (1.0 + centre), axis=1)
 
     def at(self, xyz: np.ndarray) -> RegionIndex:

@@ -46,12 +46,18 @@ MIN_SHARED_SHARE = 0.4
 BOX_TOLERANCE_M = 0.1
 SHAPE_POINTS = 2000
 SHAPE_MIN_SCORE = 0.9
+# Two rooms whose floors lie this far apart or more along up (a storey, or a step) are compared, and moved onto
+# each other, with that shift along up; closer floors are one floor measured twice (a scan's floor placed in two
+# rooms of one storey was measured 0.4 mm apart), and their rooms keep their heights.
+FLOOR_STEP_M = 0.1
 
 
 class RoomTwins:
     """For each region of a building, the other regions that repeat it and the transform between them.
 
     graph : the site's graph; node_region : (k,) region index of each node (-1 none); up : the map's unit up.
+    floors : (r,) each region's floor height along up (NaN: not known), or None: rooms on another storey, or a step
+    up or down (FLOOR_STEP_M), repeat a room with that shift along up (a room straight above its copy).
     `of(a)` : [(b, T_b_a)] with T_b_a (4, 4) moving region a's content onto region b's (map frame), made on first
     use, or by `warm`, and kept (a row of a 100-room building costs a few milliseconds).
     For rooms with too few objects to match (`shape`): field, the building's distance field; bounds (r, 2, 3) each
@@ -59,8 +65,8 @@ class RoomTwins:
     """
 
     def __init__(self, graph: MapGraph, node_region: np.ndarray, up: np.ndarray, regions: int, *,
-                 field: DistanceField | None = None, bounds: np.ndarray | None = None,
-                 sample: Callable[[int], np.ndarray] | None = None) -> None:
+                 floors: np.ndarray | None = None, field: DistanceField | None = None,
+                 bounds: np.ndarray | None = None, sample: Callable[[int], np.ndarray] | None = None) -> None:
         R_level = rotation_between(np.asarray(up, dtype=np.float64), np.array([0.0, 0.0, 1.0]))
         self._R_level = R_level  # map -> level frame (z along up)
         self._level = graph.centroid @ R_level.T
@@ -71,6 +77,7 @@ class RoomTwins:
         for r, n in enumerate(self._nodes):
             self._rows[r, :len(n)] = n
         self._found: dict[int, list[tuple[int, np.ndarray]]] = {}
+        self._floors = np.full(regions, np.nan) if floors is None else np.asarray(floors, dtype=np.float64)
         # Boxes are the map's axes: quarter turns about up are turns about z only where up is z (a composed building).
         z_up = bool(np.dot(up, [0.0, 0.0, 1.0]) > 1.0 - 1e-6)
         self._field, self._bounds, self._sample = (field, bounds, sample) if z_up else (None, None, None)
@@ -133,8 +140,14 @@ class RoomTwins:
         or by their shapes when either has too few objects to tell."""
         na, nb = self._nodes[a], self._nodes[b]
         if min(len(na), len(nb)) >= MIN_SHARED:
-            return self._transform(na, nb)
+            return self._transform(na, nb, self._rise(a, b))
         return self._shape_transform(a, b) if self._field is not None else None
+
+    def _rise(self, a: int, b: int) -> float:
+        """How far region b's floor lies above region a's along up: 0 when either is not known or they are less
+        than FLOOR_STEP_M apart."""
+        rise = float(self._floors[b] - self._floors[a])
+        return rise if np.isfinite(rise) and abs(rise) >= FLOOR_STEP_M else 0.0
 
     def _shape_transform(self, a: int, b: int) -> np.ndarray | None:
         """T (4, 4, map frame): region a's box turned by a quarter turn about its centre (z) onto region b's box
@@ -151,7 +164,8 @@ class RoomTwins:
             T = np.eye(4)
             c, s = round(np.cos(k * np.pi / 2)), round(np.sin(k * np.pi / 2))
             T[:2, :2] = [[c, -s], [s, c]]
-            T[:2, 3] = centre_b[:2] - T[:2, :2] @ centre_a[:2]  # rooms of one floor: heights stay
+            T[:2, 3] = centre_b[:2] - T[:2, :2] @ centre_a[:2]
+            T[2, 3] = self._rise(a, b)  # (z is up here)
             poses.append(T)
         poses = np.array(poses)
         if a not in self._samples:
@@ -160,17 +174,18 @@ class RoomTwins:
         best = int(np.argmax(scores))
         return poses[best] if scores[best] >= SHAPE_MIN_SCORE else None
 
-    def _transform(self, na: np.ndarray, nb: np.ndarray) -> np.ndarray | None:
+    def _transform(self, na: np.ndarray, nb: np.ndarray, rise: float) -> np.ndarray | None:
         """T (4, 4, map frame) taking the objects `na` onto the objects `nb` (at least MIN_SHARED each, `_pair`),
-        or None when they are no copies."""
-        inliers, yaw, tx, ty = _best_turn(self._level[na], self._level[nb], self._cls[na], self._cls[nb],
+        whose room's floor lies `rise` above theirs, or None when they are no copies."""
+        raised = self._level[na] + np.array([0.0, 0.0, rise])
+        inliers, yaw, tx, ty = _best_turn(raised, self._level[nb], self._cls[na], self._cls[nb],
                                           MIN_PAIR_M, PAIR_TOLERANCE_M, MATCH_TOLERANCE_M)
         if inliers < max(MIN_SHARED, MIN_SHARED_SHARE * min(len(na), len(nb))):
             return None
         c, s = np.cos(yaw), np.sin(yaw)
         T_level = np.eye(4)
         T_level[:2, :2] = [[c, -s], [s, c]]
-        T_level[:2, 3] = tx, ty  # rooms of one floor: heights stay
+        T_level[:3, 3] = tx, ty, rise
         L = np.eye(4)
         L[:3, :3] = self._R_level
         return L.T @ T_level @ L  # level frame -> map frame

@@ -26,6 +26,12 @@ from ..errors import InvalidFileError, InvalidFrame
 # A camera may stand in a doorway or a little outside the scanned walls of its room: the box test of a camera
 # position against a region allows this much (metres, horizontally).
 CAMERA_MARGIN_M = 0.5
+# Rooms whose floors lie this far apart or more stand on different storeys (`Storeys`): a storey is 2.4 m or more
+# from floor to floor, and a room a step above its neighbours (1 m in tests/test_building_floors.py) stands on theirs.
+STOREY_GAP_M = 2.0
+# A point up to this far under the lowest floor of a storey belongs to it, not to the storey below (a camera a
+# little low, a region of interest's centre among the floor's points).
+BELOW_FLOOR_M = 0.3
 
 
 @dataclass(frozen=True)
@@ -70,6 +76,41 @@ class Region:
         if self.floor_m is not None:
             out["floor_m"] = round(float(self.floor_m), 4)
         return out
+
+
+@dataclass(frozen=True)
+class Storeys:
+    """The storeys of a building: its regions grouped by floor height, floors STOREY_GAP_M or more apart on
+    different storeys. Seen from above, the rooms of two storeys overlap: which room a point lies in is asked of the
+    rooms on its own storey (`RegionMaps.indices_at`, `SearchRegion.allows`). Heights are z, the up of a composed
+    building (`site compose` levels its rooms); a site of one region, or whose rooms share a storey, has one.
+
+    region : (r,) int, the storey of each region (-1 where its floor is not known: it stands on every storey).
+    base : (s,) float, the lowest floor of each storey, ascending (empty when no floor is known)."""
+
+    region: np.ndarray
+    base: np.ndarray
+
+    @classmethod
+    def of(cls, regions: list[Region]) -> "Storeys":
+        floors = np.array([np.nan if r.floor_m is None else r.floor_m for r in regions], dtype=np.float64)
+        known = np.isfinite(floors)
+        heights = np.unique(floors[known])  # ascending
+        first = np.concatenate([[True], np.diff(heights) >= STOREY_GAP_M]) if len(heights) else np.zeros(0, bool)
+        base = heights[first]
+        storey = np.searchsorted(base, np.where(known, floors, 0.0), side="right") - 1
+        return cls(np.where(known, storey, -1), base)
+
+    @property
+    def several(self) -> bool:
+        return len(self.base) > 1
+
+    def elsewhere(self, z: np.ndarray) -> np.ndarray:
+        """z : (n,) heights of points -> (n, r) bool: the region stands on another storey than the point, whose
+        storey is the highest whose lowest floor lies at most BELOW_FLOOR_M above it (the lowest for a point under
+        every storey)."""
+        at = np.maximum(np.searchsorted(self.base, np.asarray(z, dtype=np.float64) + BELOW_FLOOR_M, side="right") - 1, 0)
+        return (self.region[None, :] >= 0) & (self.region[None, :] != at[:, None])
 
 
 def region_from_points(region_id: str, xyz: list[np.ndarray], nodes: list[str], map_range: tuple[int, int],
@@ -155,7 +196,12 @@ class SearchRegion:
         if not self.region_ids:
             return np.linalg.norm(camera_xyz - self.center, axis=1) <= self.radius_m
         chosen = self.resolve(regions)
-        return np.any([r.contains_xy(camera_xyz) for r in chosen], axis=0)
+        storeys = Storeys.of(regions)
+        # seen from above, a named room holds the cameras of the rooms above and below it too
+        elsewhere = (storeys.elsewhere(camera_xyz[:, 2]) if storeys.several
+                     else np.zeros((len(camera_xyz), len(regions)), dtype=bool))
+        column = {r.id: k for k, r in enumerate(regions)}
+        return np.any([r.contains_xy(camera_xyz) & ~elsewhere[:, column[r.id]] for r in chosen], axis=0)
 
     def to_dict(self) -> dict[str, Any]:
         if self.region_ids:
