@@ -76,6 +76,29 @@ def test_layout_is_deterministic_and_drops_at_the_given_rate() -> None:
     assert all(not r.drop_objects for r in none.rooms)
 
 
+def test_layout_on_storeys_raises_each_storeys_grid_and_keeps_the_seeds_turns_and_drops() -> None:
+    """--storeys: the first ⌈N / storeys⌉ rooms on the ground storey, and so on, each storey laid out on the grid
+    its rooms alone would take and raised by a storey's height; the corridors of each storey with it, named by it."""
+    one = LayoutConfig(site_id="b10", rooms=10, corridor_m=2.4, seed=1)
+    flat, tall = (generate_layout([_source()], c) for c in (one, one.model_copy(update={"storeys": 3,
+                                                                                             "storey_height_m": 3.5})))
+    assert [(r.name, r.drop_objects) for r in tall.rooms] == [(r.name, r.drop_objects) for r in flat.rooms]
+    heights = [np.asarray(r.T_building_room)[2, 3] for r in tall.rooms]
+    assert heights == [0.0] * 4 + [3.5] * 4 + [7.0] * 2
+    # the ground storey is the 4-room layout of the seed (its first draws, a grid of 4), the others its grid raised
+    ground = generate_layout([_source()], one.model_copy(update={"rooms": 4})).rooms
+    assert [r.T_building_room for r in tall.rooms[:4]] == [r.T_building_room for r in ground]
+    for r in tall.rooms[4:]:
+        box = placed_footprint(_source(), np.asarray(r.T_building_room))
+        assert box[0].min() >= -1e-9 and box[1, 0] <= max(placed_footprint(_source(), np.asarray(g.T_building_room))[1, 0]
+                                                         for g in ground) + 1.5  # on a grid of two columns
+    assert [c.name for c in tall.corridors] == ["s0c00", "s1c00", "s2c00"]
+    assert [np.asarray(c.T_building_corridor)[2, 3] for c in tall.corridors] == pytest.approx([0.0, 3.5, 7.0])
+    assert [c.name for c in flat.corridors] == ["c00", "c01"]
+    with pytest.raises(ValueError, match="storey_height_m"):
+        LayoutConfig(site_id="b", rooms=4, storeys=2, storey_height_m=1.0)
+
+
 def _boxed_source() -> RoomSource:
     """`_source()` with a 0.4 × 0.6 m box for each CAD object, spread over the room: objects to move."""
     base = _source()

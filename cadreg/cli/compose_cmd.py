@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 from pathlib import Path
 
@@ -49,7 +50,8 @@ def _layout(args: argparse.Namespace) -> int:
     try:
         config = LayoutConfig(site_id=args.site_id, rooms=args.rooms, gap_m=args.gap_m, drop_prob=args.drop_prob,
                               move_prob=args.move_prob, move_max_m=args.move_max_m, move_max_deg=args.move_max_deg,
-                              corridor_m=args.corridor_m, corridor_height_m=args.corridor_height_m, seed=args.seed)
+                              corridor_m=args.corridor_m, corridor_height_m=args.corridor_height_m,
+                              storeys=args.storeys, storey_height_m=args.storey_height_m, seed=args.seed)
     except ValueError as exc:
         raise ConfigError(str(exc)) from exc
     names = [name for name, _ in args.room]
@@ -62,13 +64,14 @@ def _layout(args: argparse.Namespace) -> int:
     layout = generate_layout(sources, config)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(_layout_json(layout.model_dump()))
-    cols, rows = grid_shape(config.rooms)
+    cols, rows = grid_shape(math.ceil(config.rooms / config.storeys))
     dropped = sum(len(r.drop_objects) for r in layout.rooms)
     moved = sum(len(r.move_objects) for r in layout.rooms)
     cad = sum(len(sources[k % len(sources)].cad_ids) for k in range(config.rooms))
     print(json.dumps({"site_id": layout.site_id, "rooms": len(layout.rooms), "grid": [cols, rows],
                       "sources": {s.name: s.bundle for s in sources}, "cad_objects": cad, "dropped": dropped,
-                      "moved": moved, "corridors": len(layout.corridors), "seed": config.seed, "out": str(out)}))
+                      "moved": moved, "corridors": len(layout.corridors), "storeys": config.storeys, "seed": config.seed,
+                      "out": str(out)}))
     return 0
 
 
@@ -89,7 +92,8 @@ def register_site_compose(site_sub: argparse._SubParsersAction) -> None:
                     "about z by a random multiple of 90 degrees about its footprint centre, footprints --gap-m "
                     "apart, each CAD object dropped with probability --drop-prob, each one kept moved (turned and "
                     "shifted inside the room) with probability --move-prob; with --corridor-m, plain corridors "
-                    "between pairs of rows. Deterministic per --seed.",
+                    "between pairs of rows; with --storeys, one such grid a storey, each above the one below. "
+                    "Deterministic per --seed.",
     )
     g.add_argument("--room", action="append", required=True, type=_room_arg, metavar="NAME=BUNDLE_DIR",
                    help="a room bundle to copy (repeatable)")
@@ -103,6 +107,9 @@ def register_site_compose(site_sub: argparse._SubParsersAction) -> None:
     g.add_argument("--corridor-m", type=float, default=0.0,
                    help="clear width of a corridor between each pair of rows, metres (default 0: no corridors)")
     g.add_argument("--corridor-height-m", type=float, default=2.5, help="height of the corridors' walls, metres")
+    g.add_argument("--storeys", type=int, default=1,
+                   help="storeys the rooms are shared among, each on its own grid above the one below (default 1)")
+    g.add_argument("--storey-height-m", type=float, default=3.0, help="floor-to-floor height of a storey, metres")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--site-id", required=True, help="site id of the building")
     g.add_argument("--out", required=True, type=Path, help="layout JSON to write (bundle paths relative to it)")

@@ -18,6 +18,10 @@ One seeded generator draws, per room in order, the quarter turn and then the dro
 then, for every room in order again, the moves: the same seed gives the same layout, and the same turns and drops
 whatever `move_prob`.
 
+With `storeys` > 1 the rooms are shared among that many storeys, the first ⌈N / storeys⌉ on the ground storey and
+so on, each storey laid out as above on its own grid (of ⌈N / storeys⌉ rooms) and raised by `storey_height_m`: seen
+from above, its rooms overlap those of the storey below (a room turned as the one under it stands straight above it).
+
 With `corridor_m` > 0 the rows pair up about corridors instead (`compose.CorridorEntry`, cadreg/site/corridor.py):
 corridor c<k> runs along x between rows 2k and 2k + 1, its clear width `corridor_m` between walls CORRIDOR_WALL_M
 thick standing against the footprints, from x = 0 to the far end of the longer row; the rooms of row 2k sit at the
@@ -68,6 +72,9 @@ class LayoutConfig(BaseModel):
     corridor_m: float = Field(0.0, ge=0, le=10, description="clear width of a corridor between each pair of rows, "
                               "metres; 0: no corridors")
     corridor_height_m: float = Field(2.5, gt=0, le=10, description="height of the corridors' walls, metres")
+    storeys: int = Field(1, ge=1, le=100, description="storeys the rooms are shared among, each laid out on its "
+                         "own grid above the one below")
+    storey_height_m: float = Field(3.0, ge=2.0, le=20, description="floor-to-floor height of a storey, metres")
     seed: int = Field(0, ge=0)
 
 
@@ -242,11 +249,13 @@ def grid_corridors(sources: list[RoomSource], sizes: list[np.ndarray], corners: 
 
 
 def generate_layout(sources: list[RoomSource], config: LayoutConfig) -> Layout:
-    """The layout of `config.rooms` copies of `sources` (cycled) on a grid; deterministic per `config.seed`."""
+    """The layout of `config.rooms` copies of `sources` (cycled) on a grid, or on one grid a storey (the first
+    ⌈rooms / storeys⌉ rooms on the ground storey, and so on, each storey raised by storey_height_m; seen from above,
+    its rooms overlap those of the storey below); deterministic per `config.seed` (the turns, drops and moves are
+    those of the layout on one storey)."""
     if not sources:
         raise ConfigError("a layout needs at least one room bundle")
     rng = np.random.default_rng(config.seed)
-    cols, _ = grid_shape(config.rooms)
     picked = [sources[k % len(sources)] for k in range(config.rooms)]
     draws = [draw_room(s, rng, config.drop_prob) for s in picked]
     # after every room's turn and drops: the same seed turns and drops the same whatever move_prob
@@ -254,9 +263,22 @@ def generate_layout(sources: list[RoomSource], config: LayoutConfig) -> Layout:
              for s, (_, dropped) in zip(picked, draws)]
     sizes = [turned_size(s, turns) for s, (turns, _) in zip(picked, draws)]
     corridor_gap = config.corridor_m + 2.0 * CORRIDOR_WALL_M if config.corridor_m > 0 else None
-    corners = grid_corners(sizes, cols, config.gap_m, corridor_gap)
-    rooms = [RoomEntry(name=f"r{k:03d}", bundle=s.bundle, T_building_room=place_room(s, turns, corner).tolist(),
-                       drop_objects=dropped, move_objects=moved)
-             for k, (s, (turns, dropped), moved, corner) in enumerate(zip(picked, draws, moves, corners))]
-    corridors = grid_corridors(picked, sizes, corners, cols, config) if corridor_gap is not None else []
+    per_storey = math.ceil(config.rooms / config.storeys)
+    cols, _ = grid_shape(per_storey)
+    rooms, corridors = [], []
+    for storey, first in enumerate(range(0, config.rooms, per_storey)):
+        members = range(first, min(first + per_storey, config.rooms))
+        corners = grid_corners([sizes[k] for k in members], cols, config.gap_m, corridor_gap)
+        raise_T = np.eye(4)
+        raise_T[2, 3] = storey * config.storey_height_m
+        for k, corner in zip(members, corners):
+            (turns, dropped), s = draws[k], picked[k]
+            rooms.append(RoomEntry(name=f"r{k:03d}", bundle=s.bundle,
+                                   T_building_room=(raise_T @ place_room(s, turns, corner)).tolist(),
+                                   drop_objects=dropped, move_objects=moves[k]))
+        if corridor_gap is not None:
+            for c in grid_corridors([picked[k] for k in members], [sizes[k] for k in members], corners, cols, config):
+                name = c.name if config.storeys == 1 else f"s{storey}{c.name}"
+                T = (raise_T @ np.array(c.T_building_corridor)).tolist()
+                corridors.append(c.model_copy(update={"name": name, "T_building_corridor": T}))
     return Layout(site_id=config.site_id, rooms=rooms, corridors=corridors)
