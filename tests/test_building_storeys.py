@@ -109,3 +109,20 @@ def test_the_room_given_by_id_answers_ok_there_not_on_the_other_storey(localizer
     assert r.status == Status.OK
     assert _near(r.T_map_camera, T_true if room == "a" else ROOM_B @ T_true)
     assert {h.region for h in r.hypotheses} == {room}
+
+
+@pytest.mark.realdata
+def test_site_show_draws_one_panel_a_storey_with_its_own_points_and_rooms(storeys_dir: Path) -> None:
+    from matplotlib.figure import Figure
+
+    from cadreg.site.show import draw_site_top_view, render_site_png
+
+    site = Site.load(storeys_dir)
+    storeys = Storeys.of(site.regions)
+    for storey, room in ((0, "a"), (1, "b")):
+        ax = Figure().add_subplot(1, 1, 1)
+        draw_site_top_view(ax, site, storey=storey, max_points=len(site.map), draw_graph=False)
+        drawn = sum(len(c.get_offsets()) for c in ax.collections)
+        assert drawn == np.count_nonzero(storeys.at(site.map.points[:, 2]) == storey) > 0
+        assert [t.get_text() for t in ax.texts] == [room]  # its room's outline, named
+    assert render_site_png(site)[:8] == b"\x89PNG\r\n\x1a\n"

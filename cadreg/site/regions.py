@@ -105,12 +105,14 @@ class Storeys:
     def several(self) -> bool:
         return len(self.base) > 1
 
+    def at(self, z: np.ndarray) -> np.ndarray:
+        """z : (n,) heights of points -> (n,) int: the storey of each, the highest whose lowest floor lies at most
+        BELOW_FLOOR_M above it (the lowest for a point under every storey)."""
+        return np.maximum(np.searchsorted(self.base, np.asarray(z, dtype=np.float64) + BELOW_FLOOR_M, side="right") - 1, 0)
+
     def elsewhere(self, z: np.ndarray) -> np.ndarray:
-        """z : (n,) heights of points -> (n, r) bool: the region stands on another storey than the point, whose
-        storey is the highest whose lowest floor lies at most BELOW_FLOOR_M above it (the lowest for a point under
-        every storey)."""
-        at = np.maximum(np.searchsorted(self.base, np.asarray(z, dtype=np.float64) + BELOW_FLOOR_M, side="right") - 1, 0)
-        return (self.region[None, :] >= 0) & (self.region[None, :] != at[:, None])
+        """z : (n,) heights of points -> (n, r) bool: the region stands on another storey than the point (`at`)."""
+        return (self.region[None, :] >= 0) & (self.region[None, :] != self.at(z)[:, None])
 
 
 def region_from_points(region_id: str, xyz: list[np.ndarray], nodes: list[str], map_range: tuple[int, int],

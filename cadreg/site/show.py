@@ -11,6 +11,7 @@ import io
 import numpy as np
 
 from .bundle import Site
+from .regions import Storeys
 
 _MAX_DRAWN_POINTS = 60000
 _AUTO_CAD_MARKER = "D"  # CAD nodes from automatic alignment are diamonds (annotated ones: squares)
@@ -32,17 +33,24 @@ def class_colors(n: int) -> np.ndarray:
 
 
 def draw_site_top_view(ax, site: Site, *, max_points: int = _MAX_DRAWN_POINTS, seed: int = 0,
-                       draw_graph: bool = True, label_nodes: bool = True) -> None:
+                       draw_graph: bool = True, label_nodes: bool = True, storey: int | None = None) -> None:
     """Top view (x right, y up, map frame, metres) of `site` on `ax`.
 
     Points without a class are grey, object points take their class colour (CAD points drawn on top); nodes are
     markers (CAD: filled squares when annotated, filled diamonds when auto-aligned; cluster: hollow circles)
-    labelled "<class>", edges are thin lines.
+    labelled "<class>", edges are thin lines. storey : only that storey of a building of several (`Storeys`): its
+    points, objects and rooms (seen from above the storeys overlap).
     """
     auto = auto_cad_ids(site)
+    storeys = Storeys.of(site.regions)
+
+    def on(z: np.ndarray) -> np.ndarray:  # (n,) heights -> (n,) bool: on the storey drawn
+        return np.ones(len(z), dtype=bool) if storey is None else storeys.at(z) == storey
+
     rng = np.random.default_rng(seed)
-    n = len(site.map)
-    idx = rng.choice(n, size=min(n, max_points), replace=False) if n > max_points else np.arange(n)
+    pool = np.flatnonzero(on(site.map.points[:, 2]))
+    n = len(pool)
+    idx = pool[rng.choice(n, size=min(n, max_points), replace=False)] if n > max_points else pool
     # draw low points first so that a table top covers the floor under it
     idx = idx[np.argsort(site.map.points[idx, 2], kind="stable")]
     p = site.map.points[idx]
@@ -52,10 +60,14 @@ def draw_site_top_view(ax, site: Site, *, max_points: int = _MAX_DRAWN_POINTS, s
     ax.scatter(p[plain, 0], p[plain, 1], s=0.3, c=[(0.72, 0.72, 0.72)], linewidths=0, rasterized=True)
     ax.scatter(p[~plain, 0], p[~plain, 1], s=0.6, c=palette[c[~plain]], linewidths=0, rasterized=True)
     if draw_graph:
+        nodes = site.graph.nodes
+        shown = {node.id for node, keep in zip(nodes, on(np.array([n.centroid[2] for n in nodes]))) if keep}
         for a, b in site.graph.graph.edges():
+            if a not in shown or b not in shown:
+                continue
             pa, pb = site.graph.node(a).centroid, site.graph.node(b).centroid
             ax.plot([pa[0], pb[0]], [pa[1], pb[1]], color="0.25", lw=0.6, alpha=0.7, zorder=3)
-        for node in site.graph.nodes:
+        for node in (n for n in site.graph.nodes if n.id in shown):
             k = site.classes.index(node.cls) if node.cls in site.classes else -1
             col = palette[k] if k >= 0 else (0, 0, 0)
             if node.source == "cad":
@@ -69,17 +81,17 @@ def draw_site_top_view(ax, site: Site, *, max_points: int = _MAX_DRAWN_POINTS, s
                 ax.annotate(node.cls, node.centroid[:2], xytext=(4, 4), textcoords="offset points", fontsize=7,
                             zorder=5)
     if len(site.regions) > 1:
-        _draw_regions(ax, site)
+        _draw_regions(ax, [r for r, k in zip(site.regions, storeys.region) if storey is None or k in (storey, -1)])
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
 
 
-def _draw_regions(ax, site: Site) -> None:
+def _draw_regions(ax, regions: list) -> None:
     """Each region's box outline, named at its corner (a building's rooms)."""
     from matplotlib.patches import Rectangle
 
-    for r in site.regions:
+    for r in regions:
         (x0, y0, _), (x1, y1, _) = r.bounds
         ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, edgecolor="tab:blue", lw=0.9, zorder=6))
         ax.annotate(r.id, (x0, y1), xytext=(2, -8), textcoords="offset points", fontsize=6, color="tab:blue",
@@ -94,15 +106,26 @@ def render_site_png(site: Site, *, dpi: int = 150) -> bytes:
     from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
 
-    fig = Figure(figsize=(8, 7))
-    ax = fig.add_subplot(1, 1, 1)
-    # A building's hundreds of class names would hide its rooms: nodes are named only in small sites.
-    draw_site_top_view(ax, site, label_nodes=len(site.regions) <= 4)
+    # A building of several storeys: one panel a storey, ground floor first (seen from above they overlap).
+    storeys = Storeys.of(site.regions)
+    panels = list(range(len(storeys.base))) if storeys.several else [None]
+    fig = Figure(figsize=(8 * len(panels), 7 if len(panels) == 1 else 5))
+    axes = [fig.add_subplot(1, len(panels), k + 1) for k in range(len(panels))]
+    for ax, storey in zip(axes, panels):
+        # A building's hundreds of class names would hide its rooms: nodes are named only in small sites.
+        draw_site_top_view(ax, site, label_nodes=len(site.regions) <= 4, storey=storey)
+        if storey is not None:
+            ax.set_title(f"storey {storey}: floor {storeys.base[storey]:.2f} m", fontsize=9)
     n_cad = sum(1 for n in site.graph.nodes if n.source == "cad")
     n_auto = len(auto_cad_ids(site))
-    ax.set_title(f"site {site.site_id} v{site.version}: {len(site.graph.nodes)} objects "
-                 f"({n_cad} CAD{f', {n_auto} auto-aligned' if n_auto else ''}), "
-                 f"{site.graph.graph.number_of_edges()} edges")
+    title = (f"site {site.site_id} v{site.version}: {len(site.graph.nodes)} objects "
+             f"({n_cad} CAD{f', {n_auto} auto-aligned' if n_auto else ''}), "
+             f"{site.graph.graph.number_of_edges()} edges")
+    if storeys.several:
+        fig.suptitle(title)
+    else:
+        axes[0].set_title(title)
+    ax = axes[0]
     handles = [
         Line2D([], [], marker="s", ls="", mfc="w", mec="k", label="CAD node (annotation)"),
         Line2D([], [], marker="o", ls="", mfc="none", mec="k", label="cluster node"),
