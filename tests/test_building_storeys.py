@@ -126,3 +126,14 @@ def test_site_show_draws_one_panel_a_storey_with_its_own_points_and_rooms(storey
         assert drawn == np.count_nonzero(storeys.at(site.map.points[:, 2]) == storey) > 0
         assert [t.get_text() for t in ax.texts] == [room]  # its room's outline, named
     assert render_site_png(site)[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.realdata
+def test_site_info_names_the_storeys(storeys_dir: Path, capsys) -> None:
+    from cadreg.cli.main import main
+
+    assert main(["site", "info", str(storeys_dir), "--json"]) == 0
+    floors = json.loads(capsys.readouterr().out)["storeys"]
+    assert len(floors) == 2 and floors[1] - floors[0] == pytest.approx(STOREY_M, abs=0.01)
+    assert main(["site", "info", str(storeys_dir)]) == 0
+    assert "2 region(s) on 2 storeys" in capsys.readouterr().out

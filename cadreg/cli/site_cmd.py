@@ -77,6 +77,8 @@ def cad_origins(site) -> dict[str, dict]:
 def site_summary(site) -> dict:
     """The `site info --json` document (DESIGN §8), plus a few extra keys (CAD nodes: `origin` "annotation" |
     "auto", and `fit` for automatic ones)."""
+    from ..site.regions import Storeys
+
     origins = cad_origins(site)
 
     def node(n) -> dict:
@@ -101,6 +103,8 @@ def site_summary(site) -> dict:
         "built_at": site.manifest.get("built_at"),
         "cad_fit": list(site.manifest.get("enhance", {}).get("cads", [])),
         "regions": [r.info() for r in site.regions],
+        # the lowest floor of each storey (`Storeys`: rooms whose floors lie 2 m or more apart)
+        "storeys": [round(float(b), 4) for b in Storeys.of(site.regions).base],
         "up": None if site.up is None else [round(float(x), 4) for x in site.up],
     }
 
@@ -116,7 +120,10 @@ def _info(args: argparse.Namespace) -> int:
     print(f"site {info['site_id']}  version {info['version']}  built {info['built_at']}")
     print(f"map points {info['points']}  raw points {info['raw_points']}  edges {info['edges']}  up "
           + ("found from the map at load" if info["up"] is None else "({:.3f}, {:.3f}, {:.3f})".format(*info["up"])))
-    print(f"{len(info['regions'])} region(s):")
+    storeys = info["storeys"]
+    print(f"{len(info['regions'])} region(s)" + (f" on {len(storeys)} storeys (floors at "
+                                                   + ", ".join(f"{b:.2f}" for b in storeys) + " m)"
+                                                   if len(storeys) > 1 else "") + ":")
     print(f"{'region':<12} {'objects':>7} {'points':>9} {'floor [m]':>9}  bounds [m]")
     for r in info["regions"]:
         (x0, y0, z0), (x1, y1, z1) = r["bounds"]
