@@ -617,8 +617,10 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         # scores are 0), and a margin over none says nothing: it must agree with the map's depth on its own (a
         # scene0470 render was answered `ok` 0.86 m and 34 degrees off, depth agreement 0.79, margin 0.52 over two
         # poses that saw through; the right answers taken so agreed in 97.5-99 % of the view).
-        min_depth_agreement = (max(mc.min_depth_agreement, mc.min_depth_agreement_passed_over) if choice.passed_over
-                               else mc.min_depth_agreement)
+        min_depth_agreement = (mc.min_depth_agreement if choice.view_agreement is None
+                               else self.config.regions.min_depth_agreement)
+        if choice.passed_over:
+            min_depth_agreement = max(min_depth_agreement, mc.min_depth_agreement_passed_over)
         # In a building the margin is between view agreements, and grows where they are noisier (`_view_margin`).
         ambiguity_margin = (mc.ambiguity_margin if choice.view_agreement is None
                             else self._view_margin(choice.view_agreement))
