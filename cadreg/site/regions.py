@@ -80,8 +80,9 @@ class Region:
 
 @dataclass(frozen=True)
 class Storeys:
-    """The storeys of a building: its regions grouped by floor height, floors STOREY_GAP_M or more apart on
-    different storeys. Seen from above, the rooms of two storeys overlap: which room a point lies in is asked of the
+    """The storeys of a building: its regions grouped by floor height, a storey starting wherever the next floor
+    up lies STOREY_GAP_M or more above the one below it (a run of steps each under that stays one storey). Seen
+    from above, the rooms of two storeys overlap: which room a point lies in is asked of the
     rooms on its own storey (`RegionMaps.indices_at`, `SearchRegion.allows`). Heights are z, the up of a composed
     building (`site compose` levels its rooms); a site of one region, or whose rooms share a storey, has one.
 
