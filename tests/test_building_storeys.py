@@ -14,13 +14,12 @@ import numpy as np
 import pytest
 
 from cadreg import Site
-from cadreg.geometry import pose_errors
 from cadreg.localize.localizer import Localizer
 from cadreg.localize.twins import RoomTwins
 from cadreg.result import Status
 from cadreg.site.compose import compose_site, read_layout
 from cadreg.site.regions import Region, SearchRegion, Storeys
-from tracking_rooms import DROPPED
+from tracking_rooms import DROPPED, near
 
 STOREY_M = 3.0
 ROOM_B = np.eye(4)
@@ -61,11 +60,6 @@ def localizer(storeys_dir: Path) -> Localizer:
     return Localizer.from_site(Site.load(storeys_dir))
 
 
-def _near(T: np.ndarray, T_true: np.ndarray) -> bool:
-    t_err, r_err = pose_errors(np.asarray(T, float), T_true)
-    return t_err < 0.05 and r_err < 5.0
-
-
 @pytest.mark.realdata
 def test_a_point_lies_in_the_room_of_its_own_storey(localizer: Localizer) -> None:
     a, b = localizer.maps.regions
@@ -93,8 +87,8 @@ def test_a_view_both_storeys_show_is_ambiguous_with_both_rooms(localizer: Locali
     for labelled in (True, False):
         r = localizer.localize(frame if labelled else replace(frame, labels=None))
         assert r.status == Status.AMBIGUOUS
-        assert any(h.region == "a" and _near(h.T_map_camera, T_true) for h in r.hypotheses)
-        assert any(h.region == "b" and _near(h.T_map_camera, ROOM_B @ T_true) for h in r.hypotheses)
+        assert any(h.region == "a" and near(h.T_map_camera, T_true) for h in r.hypotheses)
+        assert any(h.region == "b" and near(h.T_map_camera, ROOM_B @ T_true) for h in r.hypotheses)
 
 
 @pytest.mark.realdata
@@ -107,7 +101,7 @@ def test_the_room_given_by_id_answers_ok_there_not_on_the_other_storey(localizer
     assert named.allows(cameras, localizer.maps.regions).tolist() == [room == "a", room == "b"]
     r = localizer.localize(replace(frame, search_region=named))
     assert r.status == Status.OK
-    assert _near(r.T_map_camera, T_true if room == "a" else ROOM_B @ T_true)
+    assert near(r.T_map_camera, T_true if room == "a" else ROOM_B @ T_true)
     assert {h.region for h in r.hypotheses} == {room}
 
 

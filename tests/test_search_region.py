@@ -17,7 +17,6 @@ import pytest
 import zenoh
 
 from cadreg.errors import InvalidFileError, InvalidFrame
-from cadreg.geometry import pose_errors
 from cadreg.localize.localizer import Localizer
 from cadreg.result import Status
 from cadreg.site.bundle import Site
@@ -27,7 +26,7 @@ from service.schemas import SearchRegionIn
 from service.settings import Settings
 from service.zenoh_server import zenoh_config
 from test_service_support import LiveServer, free_ports, multipart
-from tracking_rooms import ROOM_B_OFFSET_M
+from tracking_rooms import ROOM_B_OFFSET_M, near
 
 pytestmark = pytest.mark.realdata
 SITE = "twin-rooms"
@@ -38,11 +37,6 @@ ROOM_B[0, 3] = ROOM_B_OFFSET_M
 @pytest.fixture(scope="module")
 def localizer(twin_rooms_dir: Path) -> Localizer:
     return Localizer.from_site(Site.load(twin_rooms_dir))
-
-
-def _near(T: np.ndarray, T_true: np.ndarray) -> bool:
-    t_err, r_err = pose_errors(np.asarray(T, float), T_true)
-    return t_err < 0.05 and r_err < 5.0
 
 
 # --- regions in the bundle ---------------------------------------------------------------------------------------
@@ -108,8 +102,8 @@ def test_a_repeated_view_is_ambiguous_and_each_hypothesis_names_its_room(localiz
     r = localizer.localize(frame)
     assert r.status == Status.AMBIGUOUS
     assert {"a", "b"} <= {h.region for h in r.hypotheses}
-    assert any(h.region == "a" and _near(h.T_map_camera, T_true) for h in r.hypotheses)
-    assert any(h.region == "b" and _near(h.T_map_camera, ROOM_B @ T_true) for h in r.hypotheses)
+    assert any(h.region == "a" and near(h.T_map_camera, T_true) for h in r.hypotheses)
+    assert any(h.region == "b" and near(h.T_map_camera, ROOM_B @ T_true) for h in r.hypotheses)
     assert r.to_dict()["hypotheses"][0]["region"] in ("a", "b")
 
 
@@ -118,7 +112,7 @@ def test_the_room_given_by_id_answers_the_repeated_view_ok_there(localizer: Loca
     frame, T_true = twin_shared_view
     r = localizer.localize(replace(frame, search_region=SearchRegion(region_ids=(room,))))
     assert r.status == Status.OK
-    assert _near(r.T_map_camera, T_true if room == "a" else ROOM_B @ T_true)
+    assert near(r.T_map_camera, T_true if room == "a" else ROOM_B @ T_true)
     assert {h.region for h in r.hypotheses} == {room}
 
 
@@ -126,7 +120,7 @@ def test_a_ball_around_the_camera_answers_ok_in_its_room(localizer: Localizer, t
     frame, T_true = twin_shared_view
     centre = (ROOM_B @ T_true)[:3, 3]
     r = localizer.localize(replace(frame, search_region=SearchRegion(center=centre, radius_m=1.0)))
-    assert r.status == Status.OK and _near(r.T_map_camera, ROOM_B @ T_true)
+    assert r.status == Status.OK and near(r.T_map_camera, ROOM_B @ T_true)
 
 
 def test_an_unknown_region_id_is_an_invalid_frame_naming_it(localizer: Localizer, twin_shared_view) -> None:
@@ -140,7 +134,7 @@ def test_the_label_free_search_stays_in_the_region(localizer: Localizer, twin_sh
     r = localizer.localize(replace(frame, labels=None, search_region=SearchRegion(region_ids=("b",))))
     assert r.hypotheses and all(h.region == "b" for h in r.hypotheses)
     if r.status == Status.OK:
-        assert _near(r.T_map_camera, ROOM_B @ T_true)
+        assert near(r.T_map_camera, ROOM_B @ T_true)
 
 
 def test_the_label_free_search_box_counts_the_regions_it_covers(localizer: Localizer, twin_shared_view) -> None:
@@ -186,7 +180,7 @@ def test_http_reports_regions_and_honours_search_region(server, twin_shared_view
     url = f"{server.url}/v1/sites/{SITE}/localize"
     files, data = multipart(frame, meta_override={"search_region": {"region_ids": ["b"]}})
     body = httpx.post(url, files=files, data=data, timeout=60).json()
-    assert body["status"] == "ok" and _near(np.array(body["T_map_camera"]), ROOM_B @ T_true)
+    assert body["status"] == "ok" and near(np.array(body["T_map_camera"]), ROOM_B @ T_true)
     assert {h["region"] for h in body["hypotheses"]} == {"b"}
     for bad, why in (({"region_ids": ["nowhere"]}, "nowhere"), ({"center": [0, 0, 0]}, "radius_m"),
                      ({"center": [0, 0, 0], "radius_m": 1, "region_ids": ["a"]}, "either"),
@@ -208,6 +202,6 @@ def test_zenoh_query_honours_search_region(server, twin_shared_view) -> None:
         replies = list(session.get(f"cadreg/{SITE}/localize", payload=codec.pack_envelope(parts, meta), timeout=60))
         assert len(replies) == 1 and replies[0].ok is not None
         result = codec.decode_result(replies[0].ok.payload.to_bytes())
-        assert result["status"] == "ok" and _near(np.array(result["T_map_camera"]), T_true)
+        assert result["status"] == "ok" and near(np.array(result["T_map_camera"]), T_true)
     finally:
         session.close()

@@ -1,6 +1,7 @@
 """Helpers of the repeated-rooms tests (no tests here): two copies of the real scene0470 room side by side, the
 second missing a chair and the bin (`cadreg site compose`), and a camera that starts on a view both rooms share and
-turns towards what only the first room holds, rendered from the real scene0470 mesh (which is room "a")."""
+turns towards what only the first room holds, rendered from the real scene0470 mesh (which is room "a"); and
+`near`, the tests' 5 cm / 5° check of a pose."""
 
 from __future__ import annotations
 
@@ -15,6 +16,14 @@ CAMERA_M = np.array([1.7, 2.3, 1.4])
 # looked-at points: from the table's corner (a view both rooms share) to the chair and bin only room "a" holds
 LOOK_FROM_M = np.array([0.7, 0.6, 0.4])
 LOOK_TO_M = np.array([3.2, 0.9, 0.4])
+
+
+def near(T: np.ndarray, T_true: np.ndarray) -> bool:
+    """Whether pose T lies within 5 cm and 5° of T_true (both (4, 4))."""
+    from cadreg.geometry import pose_errors
+
+    t_err, r_err = pose_errors(np.asarray(T, float), T_true)
+    return t_err < 0.05 and r_err < 5.0
 
 
 def look_at(position: np.ndarray, target: np.ndarray) -> np.ndarray:
