@@ -11,7 +11,7 @@ import io
 import numpy as np
 
 from .bundle import Site
-from .regions import Storeys
+from .regions import Region, Storeys
 
 _MAX_DRAWN_POINTS = 60000
 _AUTO_CAD_MARKER = "D"  # CAD nodes from automatic alignment are diamonds (annotated ones: squares)
@@ -61,13 +61,14 @@ def draw_site_top_view(ax, site: Site, *, max_points: int = _MAX_DRAWN_POINTS, s
     ax.scatter(p[~plain, 0], p[~plain, 1], s=0.6, c=palette[c[~plain]], linewidths=0, rasterized=True)
     if draw_graph:
         nodes = site.graph.nodes
-        shown = {node.id for node, keep in zip(nodes, on(np.array([n.centroid[2] for n in nodes]))) if keep}
+        heights = np.array([node.centroid[2] for node in nodes])
+        shown = {node.id for node, keep in zip(nodes, on(heights)) if keep}
         for a, b in site.graph.graph.edges():
             if a not in shown or b not in shown:
                 continue
             pa, pb = site.graph.node(a).centroid, site.graph.node(b).centroid
             ax.plot([pa[0], pb[0]], [pa[1], pb[1]], color="0.25", lw=0.6, alpha=0.7, zorder=3)
-        for node in (n for n in site.graph.nodes if n.id in shown):
+        for node in (node for node in nodes if node.id in shown):
             k = site.classes.index(node.cls) if node.cls in site.classes else -1
             col = palette[k] if k >= 0 else (0, 0, 0)
             if node.source == "cad":
@@ -87,7 +88,7 @@ def draw_site_top_view(ax, site: Site, *, max_points: int = _MAX_DRAWN_POINTS, s
     ax.set_ylabel("y [m]")
 
 
-def _draw_regions(ax, regions: list) -> None:
+def _draw_regions(ax, regions: list[Region]) -> None:
     """Each region's box outline, named at its corner (a building's rooms)."""
     from matplotlib.patches import Rectangle
 
