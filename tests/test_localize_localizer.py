@@ -390,6 +390,36 @@ def test_a_close_view_of_a_door_in_a_corner_is_found_in_its_own_corner_by_its_co
     assert not any("more leaves of the label-free search" in n for n in r.diagnostics.notes)
 
 
+def test_an_answer_whose_colours_follow_the_map_weakly_takes_the_second_look(scene0470_site_dir, scene0470_dir,
+                                                                              tmp_path) -> None:
+    """MatchConfig.second_look_chroma: a robot's camera 0.38 m up at a bare wall of scene0470 (the pose of frame 30
+    of `cadreg render --height 0.3 0.9 --n 100 --seed 23`, rendered with seed 1). Without labels the search's first
+    answer fits another wall 1.2 m away, turned 90 degrees, and its chroma correlates 0.46 with the map's: above
+    the 0.25 that rules an answer out, so it was claimed `ok`. Below 0.5 the search's further leaves whose colours
+    do follow the map's are refined too, and the true pose, its chroma at 0.95, wins."""
+    from conftest import scene0470_mesh
+
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.render.sequence import render_frames
+    from cadreg.site.bundle import Site
+
+    T_wall = np.array([[-0.790797868658, -0.356760937728, 0.497353359532, 2.816386617975],
+                       [-0.609477119377, 0.384153342886, -0.693515573081, 1.791930198000],
+                       [0.056359310521, -0.851556129953, -0.521225273425, 0.382012800030],
+                       [0.0, 0.0, 0.0, 1.0]])
+    render_frames(scene0470_mesh(scene0470_dir), tmp_path / "frames", 1, seed=1, poses=[T_wall])
+    frame, T_true = RecordedFrames.open(tmp_path / "frames").load(0)
+    frame = replace(frame, labels=None)
+    site = Site.load(scene0470_site_dir)
+    r = Localizer.from_site(site).localize(frame)
+    assert r.status == Status.OK and pose_errors(r.T_map_camera, T_true)[0] < 0.05, r.diagnostics.notes
+    assert any("more leaves of the label-free search" in n for n in r.diagnostics.notes)
+    # With the look only below the bar that rules an answer out, the first answer stands, and is wrong.
+    bar = LocalizeConfig().match.min_chroma_correlation
+    r = Localizer.from_site(site, LocalizeConfig(match=MatchConfig(second_look_chroma=bar))).localize(frame)
+    assert r.status == Status.OK and pose_errors(r.T_map_camera, T_true)[0] > 1.0
+
+
 def test_the_margin_is_to_the_best_distinct_refined_rival(localizer) -> None:
     """Refined contenders best first: a runner-up that converged onto the winner is no rival and must not hide a
     distinct one behind it (twin rooms at 0.962 and 0.947 with a copy of the first between them were answered

@@ -221,9 +221,11 @@ class FallbackStage:
 
     def _leaves_in_the_frames_colours(self, scan: Scan) -> Hypotheses | None:
         """The label-free search's reserve leaves (`Scan.reserve`) at which the frame's colours follow the map's
-        (`Localizer._chroma_at` at least MatchConfig.min_chroma_correlation; a leaf where the map's colours are too
-        flat to tell is left out: the frame's are not, or its answer would not have been ruled out by them),
-        polished as the first leaves were; None when none is. The reserve is spent."""
+        (`Localizer._chroma_at` not `_chroma_rules_out`: measured at a leaf, up to half a cell and a yaw step off, a
+        right pose's chroma is lower than refined, and at the doubt's bar the true corner of a view at a robot's
+        height was left out; a leaf where the map's colours are too flat to tell is left out: the frame's are not,
+        or its answer would not have been doubted by them), polished as the first leaves were; None when none is.
+        The reserve is spent."""
         reserve, scan.reserve = scan.reserve, None
         if reserve is None or not len(reserve):
             return None

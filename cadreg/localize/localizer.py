@@ -282,7 +282,7 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         # `low_overlap` whatever its colours, and a frame looking past the map's edge would pay the second look's
         # refinements for nothing (7-Scenes: 50 -> 90-130 ms on such frames).
         if (scan.reserve is not None and choice.fitness >= self.config.refine.min_fitness
-                and self._chroma_rules_out(choice.chroma)):
+                and self._chroma_doubtful(choice.chroma)):
             with timer("fallback"):
                 candidates, choice = self._second_look(scan, candidates, choice, method, diag)
         if self._weak_after_a_cut_search(scan, choice):
@@ -726,6 +726,12 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         than MatchConfig.min_chroma_correlation (`chroma`, `_chroma_at`'s; None: not measured, nothing concluded)."""
         return chroma is not None and chroma < self.config.match.min_chroma_correlation
 
+    def _chroma_doubtful(self, chroma: float | None) -> bool:
+        """Whether the frame's colours at a pose follow the map's too weakly to leave the label-free search's next
+        leaves unlooked at (MatchConfig.second_look_chroma, and below min_chroma_correlation in any case)."""
+        mc = self.config.match
+        return chroma is not None and chroma < max(mc.second_look_chroma, mc.min_chroma_correlation)
+
     def _chroma_at(self, scan: Scan, T_map_camera: np.ndarray, center_camera: np.ndarray) -> float | None:
         """`RefineMap.chroma_correlation` of the frame's fit sample placed by a pose, within the refinement's inlier
         distance, on the map of the pose's region."""
@@ -735,12 +741,14 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
 
     def _second_look(self, scan: Scan, candidates: list[Candidate], choice: Choice, method: str,
                      diag: Diagnostics) -> tuple[list[Candidate], Choice]:
-        """The refined answer's colours are not the map's (`_chroma_rules_out`): the shape fits another place. The
-        label-free search's reserve leaves at which the frame's colours do follow the map's
+        """The refined answer's colours follow the map's weakly or not at all (`_chroma_doubtful`): the shape may fit
+        another place. The label-free search's reserve leaves at which the frame's colours do follow the map's
         (`_leaves_in_the_frames_colours`) join the candidates, and the refine stage runs again over them all (the
-        ruled-out answer among them: it may still win, and `_result` then does not claim it). A close view of a
-        door in a corner of scene0470, at a robot's height, fit a white corner 2.1 m away best (leaf score 0.94);
-        the true corner's leaf ranked 17th, and polished it fit better (0.97), its chroma correlating 0.97."""
+        doubted answer among them: it may still win, and `_result` then claims it unless `_chroma_rules_out`). A
+        close view of a door in a corner of scene0470, at a robot's height, fit a white corner 2.1 m away best (leaf
+        score 0.94); the true corner's leaf ranked 17th, and polished it fit better (0.97), its chroma correlating
+        0.97. Two views of bare walls at a robot's height, answered `ok` 1.2 m / 91° and 2.8 m / 174° off at chroma
+        0.46 and 0.28, had their true poses among the next leaves (then 0.95 and 0.92)."""
         leaves = self._leaves_in_the_frames_colours(scan)
         if leaves is None:
             return candidates, choice
