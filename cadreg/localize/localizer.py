@@ -757,8 +757,8 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
                 if self._distinct_from_all([c.T_map_camera], [k.T_map_camera for k in candidates])[0]]
         if not more:
             return candidates, choice
-        diag.notes.append(f"the answer's colours are not the map's there: {len(more)} more leaves of the label-free "
-                          "search, where they are, refined too")
+        diag.notes.append(f"the answer's colours follow the map's weakly there (chroma {choice.chroma:.2f}): {len(more)} "
+                          "more leaves of the label-free search, where they follow them, refined too")
         candidates = sorted(candidates + more, key=lambda c: -c.score)
         return candidates, self._refine(scan, candidates, method, diag)
 
