@@ -354,6 +354,25 @@ def test_a_pose_whose_colours_are_not_the_maps_is_not_ok(scene0470_site_dir, sce
     assert any(n.startswith("uncertain") and "colours are not the map's" in n for n in r.diagnostics.notes)
 
 
+def _found_by_the_second_look(scene0470_dir, scene0470_site_dir, tmp_path, T_map_camera: np.ndarray, *, seed: int):
+    """scene0470's mesh rendered at T_map_camera with the noise of `seed`, without labels, is answered `ok` within
+    5 cm after the second look (`Localizer._second_look`). Returns (site, frame, its true pose)."""
+    from conftest import scene0470_mesh
+
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.render.sequence import render_frames
+    from cadreg.site.bundle import Site
+
+    render_frames(scene0470_mesh(scene0470_dir), tmp_path / "frames", 1, seed=seed, poses=[T_map_camera])
+    frame, T_true = RecordedFrames.open(tmp_path / "frames").load(0)
+    frame = replace(frame, labels=None)
+    site = Site.load(scene0470_site_dir)
+    r = Localizer.from_site(site).localize(frame)
+    assert r.status == Status.OK and pose_errors(r.T_map_camera, T_true)[0] < 0.05, r.diagnostics.notes
+    assert any("more leaves of the label-free search" in n for n in r.diagnostics.notes)
+    return site, frame, T_true
+
+
 def test_a_close_view_of_a_door_in_a_corner_is_found_in_its_own_corner_by_its_colours(
         scene0470_site_dir, scene0470_dir, tmp_path) -> None:
     """A robot's camera 0.5 m up, looking into the corner of scene0470's orange door, the white wall and the floor
@@ -363,23 +382,11 @@ def test_a_close_view_of_a_door_in_a_corner_is_found_in_its_own_corner_by_its_co
     there are white wall where the frame shows the door: that answer is ruled out, and the second look refines the
     search's further leaves whose colours do follow the map's, among them the true corner's (17th). Without that
     reserve of leaves, the ruled-out answer is only held back."""
-    from conftest import scene0470_mesh
-
-    from cadreg.io.frames import RecordedFrames
-    from cadreg.render.sequence import render_frames
-    from cadreg.site.bundle import Site
-
     T_corner = np.array([[0.66020416264, -0.186963546966, 0.727444221737, 2.588325742854],
                          [-0.749164580354, -0.233156767784, 0.619992220257, 2.124116647567],
                          [0.053692598893, -0.954296889727, -0.293997535843, 0.512223554859],
                          [0.0, 0.0, 0.0, 1.0]])
-    render_frames(scene0470_mesh(scene0470_dir), tmp_path / "frames", 1, seed=5, poses=[T_corner])
-    frame, T_true = RecordedFrames.open(tmp_path / "frames").load(0)
-    frame = replace(frame, labels=None)
-    site = Site.load(scene0470_site_dir)
-    r = Localizer.from_site(site).localize(frame)
-    assert r.status == Status.OK and pose_errors(r.T_map_camera, T_true)[0] < 0.05, r.diagnostics.notes
-    assert any("more leaves of the label-free search" in n for n in r.diagnostics.notes)
+    site, frame, T_true = _found_by_the_second_look(scene0470_dir, scene0470_site_dir, tmp_path, T_corner, seed=5)
     no_reserve = LocalizeConfig(label_free=LabelFreeConfig(reserve=0))
     r = Localizer.from_site(site, no_reserve).localize(frame)
     assert r.status == Status.UNCERTAIN and pose_errors(r.hypotheses[0].T_map_camera, T_true)[0] > 1.0
@@ -397,23 +404,11 @@ def test_an_answer_whose_colours_follow_the_map_weakly_takes_the_second_look(sce
     answer fits another wall 1.2 m away, turned 90 degrees, and its chroma correlates 0.46 with the map's: above
     the 0.25 that rules an answer out, so it was claimed `ok`. Below 0.5 the search's further leaves whose colours
     do follow the map's are refined too, and the true pose, its chroma at 0.95, wins."""
-    from conftest import scene0470_mesh
-
-    from cadreg.io.frames import RecordedFrames
-    from cadreg.render.sequence import render_frames
-    from cadreg.site.bundle import Site
-
     T_wall = np.array([[-0.790797868658, -0.356760937728, 0.497353359532, 2.816386617975],
                        [-0.609477119377, 0.384153342886, -0.693515573081, 1.791930198000],
                        [0.056359310521, -0.851556129953, -0.521225273425, 0.382012800030],
                        [0.0, 0.0, 0.0, 1.0]])
-    render_frames(scene0470_mesh(scene0470_dir), tmp_path / "frames", 1, seed=1, poses=[T_wall])
-    frame, T_true = RecordedFrames.open(tmp_path / "frames").load(0)
-    frame = replace(frame, labels=None)
-    site = Site.load(scene0470_site_dir)
-    r = Localizer.from_site(site).localize(frame)
-    assert r.status == Status.OK and pose_errors(r.T_map_camera, T_true)[0] < 0.05, r.diagnostics.notes
-    assert any("more leaves of the label-free search" in n for n in r.diagnostics.notes)
+    site, frame, T_true = _found_by_the_second_look(scene0470_dir, scene0470_site_dir, tmp_path, T_wall, seed=1)
     # With the look only below the bar that rules an answer out, the first answer stands, and is wrong.
     bar = LocalizeConfig().match.min_chroma_correlation
     r = Localizer.from_site(site, LocalizeConfig(match=MatchConfig(second_look_chroma=bar))).localize(frame)
