@@ -170,14 +170,15 @@ class RefineStage:
         without labels). Its check points lay within 5 cm of the map at all three poses: the view agreement, whose
         depth tolerance is 4 cm plus 2 %, chooses then."""
         fit = lambda T: self._whole_fit(run, refine_map, T)  # noqa: E731
-        in_view = run.scan.view is not None and self._view_agreement(run, out) < c.score - VIEW_SLIDE_TOLERANCE
+        seen = self._view_agreement(run, out) if run.scan.view is not None else None
+        in_view = seen is not None and seen < c.score - VIEW_SLIDE_TOLERANCE
         if fit(out.T_map_camera) >= fit(c.T_map_camera) - SLIDE_TOLERANCE and not in_view:
             return out
         if run.whole is None:
             run.whole = self._budget(run.source, run.method)
         again = self._refine_one(refine_map, run.whole, c.T_map_camera, run.method)
         if in_view:
-            better = again if self._view_agreement(run, again) > self._view_agreement(run, out) else out
+            better = again if self._view_agreement(run, again) > seen else out
         else:
             better = self._fits_better(run, refine_map, out, again)
         if better is again:
