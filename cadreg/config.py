@@ -12,7 +12,7 @@ import tomllib
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .errors import ConfigError
 
@@ -50,9 +50,33 @@ class GraphConfig(_Section):
         "object (labels bleed past the CAD), not an object of its own")
 
 
+class PartitionConfig(_Section):
+    """A building scanned in one piece, cut into regions: its rooms, found from its floor plan, and the rooms too
+    wide for one region cut into tiles (`site/partition.py`)."""
+
+    above_m: float = Field(8.0, ge=0, description="a map (or a room) no wider than this along x and y stays one "
+                           "region; 0 keeps every map one region")
+    tile_m: float = Field(6.0, gt=0, description="a room wider than above_m is cut into tiles of at most this a side")
+    cell_m: float = Field(0.1, gt=0, description="the floor plan's cell")
+    wall_from_m: float = Field(1.2, ge=0, description="points this high above the floor and up to wall_to_m are "
+                               "walls on the floor plan (above most furniture, below door lintels)")
+    wall_to_m: float = Field(1.9, gt=0, description="see wall_from_m")
+    door_m: float = Field(1.0, gt=0, description="free floor narrower than this (a doorway) does not hold a room: "
+                          "rooms are the free floor wider than this, grown back out to the walls")
+    min_room_m2: float = Field(1.0, ge=0, description="a room's core (its floor wider than door_m) smaller than this "
+                               "is taken in by its neighbours")
+
+    @model_validator(mode="after")
+    def _band(self) -> "PartitionConfig":
+        if self.wall_to_m <= self.wall_from_m:
+            raise ValueError(f"wall_to_m ({self.wall_to_m}) must lie above wall_from_m ({self.wall_from_m})")
+        return self
+
+
 class SiteBuildConfig(_Section):
     enhance: EnhanceConfig = EnhanceConfig()
     graph: GraphConfig = GraphConfig()
+    partition: PartitionConfig = PartitionConfig()
 
 
 class AutoCadConfig(_Section):

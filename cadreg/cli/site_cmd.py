@@ -9,6 +9,8 @@ import sys
 import time
 from pathlib import Path
 
+from ..config import PartitionConfig
+
 AUTO_CAD_FILE = "auto_cad.scan2cad.json"  # written into the bundle folder by `site build --auto-cad`
 
 
@@ -48,22 +50,31 @@ def write_auto_cad(site, out: Path, file=None) -> Path | None:
 
 
 def _build(args: argparse.Namespace) -> int:
-    from ..config import AutoCadConfig
+    from pydantic import ValidationError
+
+    from ..config import AutoCadConfig, SiteBuildConfig, config_problems
+    from ..errors import ConfigError
     from ..site.build import build_site
 
+    try:
+        config = SiteBuildConfig(partition=PartitionConfig(above_m=args.rooms_above_m))
+    except ValidationError as exc:
+        raise ConfigError(f"bad --rooms-above-m: {config_problems(exc)}") from None
     t0 = time.perf_counter()
     bar, update = _progress_bar("site build")
     try:
         site = build_site(args.scan, labels_ply=args.labels, scan2cad_json=args.scan2cad, cad_root=args.cad_root,
-                          site_id=args.site_id, progress=update,
+                          site_id=args.site_id, config=config, progress=update,
                           auto_cad=AutoCadConfig() if args.auto_cad else None)
     finally:
         bar.close()
     site.save(args.out)
     write_auto_cad(site, args.out)
     n_cad = sum(1 for n in site.graph.nodes if n.source == "cad")
+    regions = len(site.regions)
     print(f"site {site.site_id} version {site.version}: {len(site.map)} map points ({len(site.raw)} raw), "
-          f"{len(site.graph.nodes)} objects ({n_cad} CAD), {site.graph.graph.number_of_edges()} edges -> {args.out}")
+          f"{len(site.graph.nodes)} objects ({n_cad} CAD), {site.graph.graph.number_of_edges()} edges"
+          + (f", {regions} regions (its rooms: `cadreg site info`)" if regions > 1 else "") + f" -> {args.out}")
     if args.auto_cad:
         print(f"elapsed {time.perf_counter() - t0:.1f} s")
     return 0
@@ -198,6 +209,9 @@ def register(subparsers) -> None:
     b.add_argument("--cad-root", type=Path, help="ShapeNet-style CAD folder: <synset>/<id>/models/model_normalized.obj")
     b.add_argument("--out", required=True, type=Path, help="bundle directory to write")
     b.add_argument("--site-id", help="site id (default: the scan file's name up to its first dot)")
+    b.add_argument("--rooms-above-m", type=float, default=PartitionConfig().above_m, metavar="M",
+                   help="a scan wider than this along x or y (a building scanned in one piece, z up) is cut into its "
+                        "rooms, each a region (default %(default)s; 0: one region)")
     b.add_argument("--auto-cad", action="store_true",
                    help="align the --cad-root library's models to the labelled instances no annotation covers "
                         f"(needs labels); writes all CAD alignments to SITE/{AUTO_CAD_FILE} (Scan2CAD format)")

@@ -34,6 +34,7 @@ from .bundle import Site
 from .enhance import CadPlacement, EnhancedMap, enhance_map
 from .graph import ObjectNode, build_graph
 from .objects import Cluster, aabb_center, affine_box, classwise_clusters, merge_stacked, points_in_box, upright_box
+from .partition import partitioned
 
 Progress = Callable[[int, int], None]
 log = logging.getLogger("cadreg.site")
@@ -152,8 +153,8 @@ def _assemble(
     if auto_report is not None:
         auto_report["scan2cad"] = _scan2cad_records(site_id, placements)
         meta["enhance"]["auto_cad"] = auto_report
-    site = Site(site_id=site_id, version="", manifest=meta, map=m, raw=raw, graph=graph, classes=classes,
-                label_maps=default_label_maps())
+    site = partitioned(Site(site_id=site_id, version="", manifest=meta, map=m, raw=raw, graph=graph, classes=classes,
+                            label_maps=default_label_maps()), config.partition)
     site.refresh_version()
     return site
 

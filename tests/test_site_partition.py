@@ -1,0 +1,150 @@
+"""A building scanned in one piece is cut into its rooms (`cadreg/site/partition.py`): the floor plan's rooms split
+at doorways, a hall too wide for one region cut into tiles, and `site build` of a scan holding three copies of the
+real scene0470 room (one mesh, as a scan of a whole floor comes) gives three regions, searched as a composed
+building's rooms are: a view all three show is `ambiguous`, with each room's pose among its hypotheses."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cadreg import Site
+from cadreg.config import PartitionConfig
+from cadreg.io.ply import read_ply, write_ply
+from cadreg.localize.localizer import Localizer
+from cadreg.result import Status
+from cadreg.site.partition import FloorPlan, partitioned, rooms_of
+from tracking_rooms import CAMERA_M, LOOK_FROM_M, look_at, near
+
+COPY_PITCH_M = 4.1  # the room is 3.5 m wide: copies 0.6 m apart along x
+COPIES = 3
+
+
+def test_free_floor_splits_into_rooms_at_a_doorway_and_every_cell_gets_a_room() -> None:
+    # 10 m x 5 m of free floor at 0.1 m cells, a wall across it at x = 5 m with a 0.8 m doorway
+    free = np.ones((100, 50), dtype=bool)
+    free[[0, -1], :] = free[:, [0, -1]] = False
+    free[50, :] = False
+    free[50, 20:28] = True
+    rooms = rooms_of(free, PartitionConfig())
+    assert rooms.min() >= 1 and set(np.unique(rooms)) == {1, 2}
+    assert len(set(rooms[:50].ravel())) == 1 and len(set(rooms[51:].ravel())) == 1
+    assert rooms[10, 25] != rooms[90, 25]
+    # a wider opening (1.6 m) does not part them
+    free[50, 15:31] = True
+    assert set(np.unique(rooms_of(free, PartitionConfig()))) == {1}
+    # nor does anything part a map of narrow floor only: one room
+    assert set(np.unique(rooms_of(np.eye(30, dtype=bool), PartitionConfig()))) == {1}
+
+
+def _floor_and_walls(x_m: float, y_m: float, spacing_m: float = 0.05) -> np.ndarray:
+    """(n, 3) points of a bare rectangular room: its floor at z 0 and its walls up to 2.5 m."""
+    x, y = np.meshgrid(np.arange(0, x_m, spacing_m), np.arange(0, y_m, spacing_m), indexing="ij")
+    floor = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+    z = np.arange(0, 2.5, spacing_m)
+    walls = []
+    for a, b in (((0, 0), (x_m, 0)), ((0, y_m), (x_m, y_m)), ((0, 0), (0, y_m)), ((x_m, 0), (x_m, y_m))):
+        t = np.arange(0, 1, spacing_m / max(abs(b[0] - a[0]), abs(b[1] - a[1])))
+        xs, zs = np.meshgrid(t, z, indexing="ij")
+        walls.append(np.stack([a[0] + xs.ravel() * (b[0] - a[0]), a[1] + xs.ravel() * (b[1] - a[1]), zs.ravel()],
+                              axis=1))
+    return np.concatenate([floor] + walls)
+
+
+def test_a_hall_wider_than_above_m_is_cut_into_tiles_and_a_room_is_not() -> None:
+    hall = FloorPlan(_floor_and_walls(20.0, 4.0), 0.0, PartitionConfig())
+    assert hall.region_names() == ["room0.0.0", "room0.1.0", "room0.2.0", "room0.3.0"]
+    # the tiles run along the hall, 5 m each
+    xs = np.array([[2.5, 2.0, 0.0], [7.5, 2.0, 0.0], [12.5, 2.0, 0.0], [17.5, 2.0, 0.0]])
+    assert hall.region_at(xs).tolist() == [0, 1, 2, 3]
+    room = FloorPlan(_floor_and_walls(6.0, 4.0), 0.0, PartitionConfig())
+    assert room.region_names() == ["room0"]
+
+
+def test_a_room_sized_map_and_a_map_whose_up_is_not_z_stay_one_region(scene0470_site_dir: Path) -> None:
+    site = Site.load(scene0470_site_dir)
+    assert partitioned(site) is site  # 3.5 m x 2.9 m
+    tilted = Site(site.site_id, "", dict(site.manifest) | {"up": [0.0, 1.0, 0.0]}, site.map, site.raw, site.graph,
+                  site.classes, site.label_maps)
+    assert partitioned(tilted, PartitionConfig(above_m=1.0)) is tilted
+    # and with the limit below its size, the one room is one region all the same (no second core)
+    assert partitioned(site, PartitionConfig(above_m=1.0)) is site
+
+
+@pytest.fixture(scope="module")
+def floor_scan(scene0470_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One scan PLY (mesh, colours, NYU40 labels) of COPIES copies of the real scene0470 room in a row along x."""
+    mesh = read_ply(scene0470_dir / "scene0470_00_vh_clean_2.ply")
+    labels = read_ply(scene0470_dir / "scene0470_00_vh_clean_2.labels.ply").vertex["label"]
+    vertex, faces = mesh.vertex, np.asarray(mesh.elements["face"]["vertex_indices"])
+    n = len(vertex["x"])
+    merged = {k: np.concatenate([np.asarray(v) + (COPY_PITCH_M * c if k == "x" else 0) for c in range(COPIES)])
+              .astype(np.asarray(v).dtype) for k, v in vertex.items()}
+    merged["label"] = np.tile(np.asarray(labels), COPIES)
+    out = tmp_path_factory.mktemp("floor-scan") / "floor.ply"
+    write_ply(out, merged, np.concatenate([faces + c * n for c in range(COPIES)]))
+    return out
+
+
+@pytest.fixture(scope="module")
+def floor_site(floor_scan: Path) -> Path:
+    out = floor_scan.parent / "site"
+    run = subprocess.run([sys.executable, "-m", "cadreg.cli.main", "site", "build", "--scan", str(floor_scan),
+                          "--out", str(out)], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    assert f"{COPIES} regions" in run.stdout
+    return out
+
+
+def test_site_build_of_a_floor_scan_gives_one_region_a_room_with_its_objects_and_the_stored_field(
+        floor_site: Path) -> None:
+    manifest = json.loads((floor_site / "site.json").read_text())
+    assert {"field.npy", "regions.npy"} <= set(manifest["files"]) and manifest["up"] == [0.0, 0.0, 1.0]
+    site = Site.load(floor_site)
+    regions = sorted(site.regions, key=lambda r: r.bounds[0, 0])
+    assert [r.id for r in regions] == [f"room{k}" for k in range(COPIES)]
+    for k, region in enumerate(regions):
+        # each region is its copy of the room: its box, its points, its objects
+        np.testing.assert_allclose(region.bounds[:, 0], [COPY_PITCH_M * k, COPY_PITCH_M * k + 3.5], atol=0.15)
+        rows = site.map.points[slice(*region.map_range)]
+        assert np.all((rows[:, 0] >= COPY_PITCH_M * k - 0.1) & (rows[:, 0] <= COPY_PITCH_M * k + 3.6))
+        centroids = np.array([n.centroid for n in site.graph.nodes if n.id in region.nodes])
+        assert len(region.nodes) == len(site.graph.nodes) // COPIES
+        assert np.all(np.abs(centroids[:, 0] - (COPY_PITCH_M * k + 1.75)) < 1.9)
+
+
+def test_a_view_the_scanned_copies_all_show_is_ambiguous_with_each_rooms_pose(
+        floor_site: Path, floor_scan: Path, tmp_path: Path) -> None:
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.render import LabelledMesh, render_frames
+
+    T_true = look_at(CAMERA_M, LOOK_FROM_M)  # the table's corner, in the first copy
+    render_frames(LabelledMesh.from_ply(floor_scan, floor_scan), tmp_path, 0, poses=[T_true], seed=0)
+    frame, _ = RecordedFrames.open(tmp_path).load(0)
+    result = Localizer.from_site(Site.load(floor_site)).localize(frame)
+    assert result.status == Status.AMBIGUOUS, result.diagnostics.notes
+    # ranked as a building's poses are: along the frame's rays through the stored field (one region: by fit)
+    assert any("view agreement" in note for note in result.diagnostics.notes), result.diagnostics.notes
+    for k in range(COPIES):
+        T = T_true.copy()
+        T[0, 3] += COPY_PITCH_M * k
+        found = [h for h in [result] + result.hypotheses if near(h.T_map_camera, T)]
+        assert found, f"no pose in room{k}"
+    assert {h.region for h in result.hypotheses} >= {f"room{k}" for k in range(COPIES)}
+
+
+def test_site_build_keeps_one_region_when_told_and_names_a_bad_limit(floor_scan: Path, tmp_path: Path) -> None:
+    cli = [sys.executable, "-m", "cadreg.cli.main", "site", "build", "--scan", str(floor_scan)]
+    run = subprocess.run(cli + ["--out", str(tmp_path / "one"), "--rooms-above-m", "0"], capture_output=True,
+                         text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    manifest = json.loads((tmp_path / "one" / "site.json").read_text())
+    assert len(manifest["regions"]) == 1 and "field.npy" not in manifest["files"]
+    bad = subprocess.run(cli + ["--out", str(tmp_path / "bad"), "--rooms-above-m", "-1"], capture_output=True,
+                         text=True, timeout=600)
+    assert bad.returncode == 2 and "--rooms-above-m" in bad.stderr and not (tmp_path / "bad").exists()
