@@ -65,6 +65,8 @@ class PartitionConfig(_Section):
                           "rooms are the free floor wider than this, grown back out to the walls")
     min_room_m2: float = Field(1.0, ge=0, description="a room's core (its floor wider than door_m) smaller than this "
                                "is taken in by its neighbours")
+    min_storey_m2: float = Field(4.0, gt=0, description="surfaces facing up that cover this much of the plan, "
+                                 "2 m or more above the floor below, are the floor of a storey above it")
 
     @model_validator(mode="after")
     def _band(self) -> "PartitionConfig":

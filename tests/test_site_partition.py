@@ -18,11 +18,12 @@ from cadreg.config import PartitionConfig
 from cadreg.io.ply import read_ply, write_ply
 from cadreg.localize.localizer import Localizer
 from cadreg.result import Status
-from cadreg.site.partition import FloorPlan, partitioned, rooms_of
+from cadreg.site.partition import FloorPlan, partitioned, rooms_of, storey_floors
 from tracking_rooms import CAMERA_M, LOOK_FROM_M, look_at, near
 
 COPY_PITCH_M = 4.1  # the room is 3.5 m wide: copies 0.6 m apart along x
 COPIES = 3
+STOREY_M = 3.0
 
 
 def test_free_floor_splits_into_rooms_at_a_doorway_and_every_cell_gets_a_room() -> None:
@@ -76,26 +77,36 @@ def test_a_room_sized_map_and_a_map_whose_up_is_not_z_stay_one_region(scene0470_
     assert partitioned(site, PartitionConfig(above_m=1.0)) is site
 
 
-@pytest.fixture(scope="module")
-def floor_scan(scene0470_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """One scan PLY (mesh, colours, NYU40 labels) of COPIES copies of the real scene0470 room in a row along x."""
+def _scan_of_copies(scene0470_dir: Path, offsets: list[tuple[float, float, float]], out: Path) -> Path:
+    """One scan PLY (mesh, colours, NYU40 labels) of copies of the real scene0470 room, each moved by an offset."""
     mesh = read_ply(scene0470_dir / "scene0470_00_vh_clean_2.ply")
     labels = read_ply(scene0470_dir / "scene0470_00_vh_clean_2.labels.ply").vertex["label"]
     vertex, faces = mesh.vertex, np.asarray(mesh.elements["face"]["vertex_indices"])
     n = len(vertex["x"])
-    merged = {k: np.concatenate([np.asarray(v) + (COPY_PITCH_M * c if k == "x" else 0) for c in range(COPIES)])
-              .astype(np.asarray(v).dtype) for k, v in vertex.items()}
-    merged["label"] = np.tile(np.asarray(labels), COPIES)
-    out = tmp_path_factory.mktemp("floor-scan") / "floor.ply"
-    write_ply(out, merged, np.concatenate([faces + c * n for c in range(COPIES)]))
+    merged = {k: np.concatenate([np.asarray(v) + (offset["xyz".index(k)] if k in ("x", "y", "z") else 0)
+                                 for offset in offsets]).astype(np.asarray(v).dtype) for k, v in vertex.items()}
+    merged["label"] = np.tile(np.asarray(labels), len(offsets))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_ply(out, merged, np.concatenate([faces + c * n for c in range(len(offsets))]))
     return out
+
+
+def _build(scan: Path, out: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "cadreg.cli.main", "site", "build", "--scan", str(scan),
+                           "--out", str(out), *args], capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def floor_scan(scene0470_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """COPIES copies of the room in a row along x, as one scan."""
+    return _scan_of_copies(scene0470_dir, [(COPY_PITCH_M * c, 0.0, 0.0) for c in range(COPIES)],
+                           tmp_path_factory.mktemp("floor-scan") / "floor.ply")
 
 
 @pytest.fixture(scope="module")
 def floor_site(floor_scan: Path) -> Path:
     out = floor_scan.parent / "site"
-    run = subprocess.run([sys.executable, "-m", "cadreg.cli.main", "site", "build", "--scan", str(floor_scan),
-                          "--out", str(out)], capture_output=True, text=True, timeout=600)
+    run = _build(floor_scan, out)
     assert run.returncode == 0, run.stderr
     assert f"{COPIES} regions" in run.stdout
     return out
@@ -139,12 +150,54 @@ def test_a_view_the_scanned_copies_all_show_is_ambiguous_with_each_rooms_pose(
 
 
 def test_site_build_keeps_one_region_when_told_and_names_a_bad_limit(floor_scan: Path, tmp_path: Path) -> None:
-    cli = [sys.executable, "-m", "cadreg.cli.main", "site", "build", "--scan", str(floor_scan)]
-    run = subprocess.run(cli + ["--out", str(tmp_path / "one"), "--rooms-above-m", "0"], capture_output=True,
-                         text=True, timeout=600)
+    run = _build(floor_scan, tmp_path / "one", "--rooms-above-m", "0")
     assert run.returncode == 0, run.stderr
     manifest = json.loads((tmp_path / "one" / "site.json").read_text())
     assert len(manifest["regions"]) == 1 and "field.npy" not in manifest["files"]
-    bad = subprocess.run(cli + ["--out", str(tmp_path / "bad"), "--rooms-above-m", "-1"], capture_output=True,
-                         text=True, timeout=600)
+    bad = _build(floor_scan, tmp_path / "bad", "--rooms-above-m", "-1")
     assert bad.returncode == 2 and "--rooms-above-m" in bad.stderr and not (tmp_path / "bad").exists()
+
+
+def test_storeys_floors_are_the_wide_surfaces_facing_up_a_storey_apart() -> None:
+    lower, upper = _floor_and_walls(10.0, 5.0), _floor_and_walls(10.0, 5.0) + [0.0, 0.0, 3.0]
+    # a table top 0.75 m up, 2 m x 1 m, and a cabinet's top 2.1 m up, 1 m x 0.5 m: no storey
+    x, y = np.meshgrid(np.arange(1, 3, 0.05), np.arange(1, 2, 0.05))
+    table = np.stack([x.ravel(), y.ravel(), np.full(x.size, 0.75)], axis=1)
+    cabinet = table[(table[:, 0] < 2) & (table[:, 1] < 1.5)] + [5.0, 0.0, 1.35]
+
+    def floors(*parts: np.ndarray) -> np.ndarray:
+        xyz = np.concatenate(parts)
+        normals = np.zeros_like(xyz)
+        normals[:, 2] = np.isin(xyz[:, 2], [0.0, 0.75, 2.1, 3.0])  # floors and tops face up, walls across
+        return storey_floors(xyz, normals, 0.0, PartitionConfig())
+
+    np.testing.assert_allclose(floors(lower, upper, table, cabinet), [0.0, 3.0], atol=0.05)
+    np.testing.assert_allclose(floors(lower, table, cabinet), [0.0])
+
+
+def test_a_scan_of_two_storeys_is_cut_by_storey_and_a_view_of_the_upper_room_is_found_there(
+        scene0470_dir: Path, tmp_path: Path) -> None:
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.render import LabelledMesh, render_frames
+
+    # three copies on the ground, a fourth straight above the middle one, a storey up
+    offsets = [(COPY_PITCH_M * c, 0.0, 0.0) for c in range(COPIES)] + [(COPY_PITCH_M, 0.0, STOREY_M)]
+    scan = _scan_of_copies(scene0470_dir, offsets, tmp_path / "storeys.ply")
+    run = _build(scan, tmp_path / "site")
+    assert run.returncode == 0, run.stderr
+    site = Site.load(tmp_path / "site")
+    floors = {r.id: r.floor_m for r in site.regions}
+    assert sorted(floors) == ["s0.room0", "s0.room1", "s0.room2", "s1.room0"]
+    ground = floors["s0.room0"]
+    assert all(f == pytest.approx(ground) for k, f in floors.items() if k.startswith("s0."))
+    assert floors["s1.room0"] == pytest.approx(ground + STOREY_M, abs=0.05)
+    upper = next(r for r in site.regions if r.id == "s1.room0")
+    assert len(upper.nodes) == len(site.graph.nodes) // len(offsets)
+    # a view of the upper room: its pose there is among the answers, named by its storey's room
+    T_true = look_at(CAMERA_M, LOOK_FROM_M)
+    T_true[:3, 3] += offsets[-1]
+    render_frames(LabelledMesh.from_ply(scan, scan), tmp_path / "frames", 0, poses=[T_true], seed=0)
+    frame, _ = RecordedFrames.open(tmp_path / "frames").load(0)
+    result = Localizer.from_site(site).localize(frame)
+    found = [h.region for h in result.hypotheses if near(h.T_map_camera, T_true)]
+    assert found == ["s1.room0"], (result.status, result.diagnostics.notes)

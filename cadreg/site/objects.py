@@ -22,6 +22,9 @@ class Cluster:
 
 # Above this many points, euclidean_clusters works on voxel means (bounded memory) instead of the points themselves.
 _DIRECT_CLUSTERING_MAX_POINTS = 60000
+# Clusters of one class over one another are one object (`merge_stacked`) only when less than this apart in height:
+# the parts a scan loses between a seat and its base are tens of centimetres, a storey is 2.4 m or more.
+STACK_GAP_M = 1.0
 
 
 def _components(points: np.ndarray, tolerance_m: float) -> np.ndarray:
@@ -137,10 +140,13 @@ def merge_stacked(points: np.ndarray, clusters: list[Cluster], min_overlap: floa
 
     Scans lose thin vertical parts (the gas column of a swivel chair, table legs), so one piece of furniture falls
     apart into a seat and a base; maps are z-up, so "one above the other" is one object. Two clusters merge when the
-    intersection of their horizontal bounding boxes covers at least `min_overlap` of the smaller one's area.
+    intersection of their horizontal bounding boxes covers at least `min_overlap` of the smaller one's area, and
+    they lie less than STACK_GAP_M apart in height: a chair a storey above another is another chair (a scan of two
+    storeys made one node of the two, half-way between its floors).
     points : (n, 3) float, the array the clusters index. Returns merged clusters ordered by class, then size.
     """
     boxes = [(points[c.indices, :2].min(axis=0), points[c.indices, :2].max(axis=0)) for c in clusters]
+    heights = [(points[c.indices, 2].min(), points[c.indices, 2].max()) for c in clusters]
     parent = list(range(len(clusters)))
 
     def find(i: int) -> int:
@@ -152,6 +158,8 @@ def merge_stacked(points: np.ndarray, clusters: list[Cluster], min_overlap: floa
     for i in range(len(clusters)):
         for j in range(i + 1, len(clusters)):
             if clusters[i].class_index != clusters[j].class_index:
+                continue
+            if max(heights[i][0], heights[j][0]) - min(heights[i][1], heights[j][1]) >= STACK_GAP_M:
                 continue
             (lo_i, hi_i), (lo_j, hi_j) = boxes[i], boxes[j]
             inter = np.clip(np.minimum(hi_i, hi_j) - np.maximum(lo_i, lo_j), 0, None).prod()

@@ -22,9 +22,17 @@ Points go to the room of their cell, objects to that of their centroid's; the ma
 region is a slice of each cloud), and the building's distance field and the regions' grids are built and stored as
 `site compose` does. A map no wider than above_m stays one region (one room, as before).
 
+A scan of several storeys is cut by storey first (`storey_floors`, `StoreyPlans`): the floor of each storey above the
+map's is the first height 2 m or more (STOREY_GAP_M) over the floor below at which surfaces facing up cover
+min_storey_m2 of the plan; each storey's points (a point belongs to the highest storey whose floor lies under it) get
+their own floor plan, measured from their own floor, and each of its regions states that floor (`Region.floor_m`):
+the localizer's storeys (`regions.Storeys`) then keep a view on its own storey. A 30-room building of three storeys
+(`/tmp/bldg/st30.json`) given as one scan and cut by rooms alone had 31 % of its unique views right with labels and 23
+wrong `ok` answers (each region held three storeys); by storey, then rooms, 97.2 % and one wrong `ok` (a corridor
+view), as composed 98.6 % and none.
+
 The floor plan is the map frame seen from above: only a map whose up is its z (within MAX_TILT_DEG) is cut, as a scan
-mesh's is (a fused map's frame is its first camera's: it stays one region). The rooms share the map's one floor (no
-`floor_m`): a scan of several storeys is not split by storey here.
+mesh's is (a fused map's frame is its first camera's: it stays one region).
 """
 
 from __future__ import annotations
@@ -37,12 +45,16 @@ from ..localize.gravity import map_floor_height, map_up_axis
 from ..localize.regions import region_grids
 from ..localize.score import building_field
 from .bundle import Site
-from .regions import region_from_points, to_manifest
+from .regions import BELOW_FLOOR_M, STOREY_GAP_M, region_from_points, to_manifest
 
 # A map is cut into regions only when its up lies within this of its z (degrees).
 MAX_TILT_DEG = 5.0
 # The up and the floor of a map that states none are found from this many of its points (`map_up_axis`).
 UP_SAMPLE = 200_000
+# A surface whose normal's z is over this faces up (a floor, a table top); storeys' floors are sought among them in
+# height bins of FLOOR_BIN_M (`storey_floors`).
+FLOOR_NORMAL_Z = 0.9
+FLOOR_BIN_M = 0.05
 
 
 def partitioned(site: Site, config: PartitionConfig = PartitionConfig()) -> Site:
@@ -59,12 +71,12 @@ def partitioned(site: Site, config: PartitionConfig = PartitionConfig()) -> Site
     if up is None:
         return site
     step = max(1, len(both) // UP_SAMPLE)
-    floor_m = map_floor_height(xyz[::step], both.normals[::step].astype(np.float64), up)
-    plan = FloorPlan(xyz, floor_m, config)
-    names = plan.region_names()
-    map_region, raw_region = plan.region_at(site.map.points), plan.region_at(site.raw.points)
+    normals = both.normals.astype(np.float64)
+    floor_m = map_floor_height(xyz[::step], normals[::step], up)
+    plans = StoreyPlans(xyz, normals, floor_m, config)
+    map_region, raw_region = plans.region_at(site.map.points), plans.region_at(site.raw.points)
     nodes = site.graph.nodes
-    node_region = plan.region_at(np.array([n.centroid for n in nodes]).reshape(-1, 3))
+    node_region = plans.region_at(np.array([n.centroid for n in nodes]).reshape(-1, 3))
     site_map = site.map.take(np.argsort(map_region, kind="stable"))
     site_raw = site.raw.take(np.argsort(raw_region, kind="stable"))
     map_region, raw_region = np.sort(map_region), np.sort(raw_region)
@@ -73,8 +85,9 @@ def partitioned(site: Site, config: PartitionConfig = PartitionConfig()) -> Site
         map_range = (int(np.searchsorted(map_region, k)), int(np.searchsorted(map_region, k, side="right")))
         raw_range = (int(np.searchsorted(raw_region, k)), int(np.searchsorted(raw_region, k, side="right")))
         points = [site_map.points[slice(*map_range)], site_raw.points[slice(*raw_range)]]
-        regions.append(region_from_points(names[k], points, [n.id for n, r in zip(nodes, node_region) if r == k],
-                                          map_range, raw_range))
+        regions.append(region_from_points(plans.names[k], points,
+                                          [n.id for n, r in zip(nodes, node_region) if r == k], map_range, raw_range,
+                                          floor_m=plans.region_floor_m[k]))
         parts.append(np.concatenate(points))
     if len(regions) < 2:
         return site
@@ -96,6 +109,67 @@ def site_up(site: Site) -> np.ndarray | None:
         up = map_up_axis(cloud.normals[::step].astype(np.float64), points=cloud.points[::step].astype(np.float64))
     up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     return up if up[2] >= np.cos(np.radians(MAX_TILT_DEG)) else None
+
+
+def storey_floors(xyz: np.ndarray, normals: np.ndarray, floor_m: float, config: PartitionConfig) -> np.ndarray:
+    """(s,) ascending: the map's floor (floor_m, its lowest storey's) and the floor of each storey above it: the
+    first height STOREY_GAP_M or more over the floor below at which surfaces facing up cover min_storey_m2 of the
+    plan, or, within a metre above that, the height where they cover the most (the floor, not a landing under it).
+    Table tops and seats lie within STOREY_GAP_M of their floor; a ceiling faces down.
+    xyz, normals : (n, 3) the map's points and normals (map frame, z up)."""
+    facing = normals[:, 2] > FLOOR_NORMAL_Z
+    height = xyz[facing, 2] - floor_m
+    level = np.floor(height / FLOOR_BIN_M).astype(np.int64)
+    cell = np.floor(xyz[facing, :2] / config.cell_m).astype(np.int64)
+    above = level >= 0
+    # a bin's area counts the cells of the bins beside it too: a floor's points straddle a bin's edge
+    keys = np.unique(np.concatenate([np.stack([level[above] + d, cell[above, 0], cell[above, 1]], axis=1)
+                                     for d in (-1, 0, 1)]), axis=0)
+    levels, cells = np.unique(keys[:, 0], return_counts=True)
+    area = cells * config.cell_m ** 2
+    floors = [float(floor_m)]
+    for b in levels[area >= config.min_storey_m2]:
+        if (b + 0.5) * FLOOR_BIN_M < floors[-1] - floor_m + STOREY_GAP_M:
+            continue
+        near = (levels >= b) & (levels <= b + round(1.0 / FLOOR_BIN_M))
+        best = levels[near][np.argmax(area[near])]
+        floors.append(float(floor_m + np.median(height[np.abs(level - best) <= 1])))
+    return np.array(floors)
+
+
+class StoreyPlans:
+    """The floor plans of a map's storeys (`storey_floors`): a point belongs to the highest storey whose floor lies
+    under it (BELOW_FLOOR_M of slack, as `regions.Storeys` has it), and to the room of that storey's plan its cell
+    lies in. names, region_floor_m : by region index; a building of several storeys names its regions
+    s<storey>.room<k> and states each one's floor (`Region.floor_m`), one of one storey room<k> and leaves the
+    floor to the localizer (the map's).
+    xyz, normals : (n, 3) the map's points and normals (map frame, z up). floor_m : the map's floor."""
+
+    def __init__(self, xyz: np.ndarray, normals: np.ndarray, floor_m: float, config: PartitionConfig) -> None:
+        self.floors = storey_floors(xyz, normals, floor_m, config)
+        storey = self.storey_of(xyz)
+        self.plans = [FloorPlan(xyz[storey == s], f, config) for s, f in enumerate(self.floors)]
+        several = len(self.plans) > 1
+        self.names = [f"s{s}.{name}" if several else name
+                      for s, plan in enumerate(self.plans) for name in plan.region_names()]
+        self.region_floor_m = [float(f) if several else None
+                               for f, plan in zip(self.floors, self.plans) for _ in plan.region_names()]
+        self._first = np.cumsum([0] + [len(plan.region_names()) for plan in self.plans])
+
+    def storey_of(self, xyz: np.ndarray) -> np.ndarray:
+        """(n,) int: the storey of each point."""
+        z = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)[:, 2]
+        return np.maximum(np.searchsorted(self.floors, z + BELOW_FLOOR_M, side="right") - 1, 0)
+
+    def region_at(self, xyz: np.ndarray) -> np.ndarray:
+        """(n,) int: the region of each point (its storey's room, or tile of one)."""
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        storey = self.storey_of(xyz)
+        out = np.zeros(len(xyz), dtype=np.int64)
+        for s, plan in enumerate(self.plans):
+            mine = storey == s
+            out[mine] = self._first[s] + plan.region_at(xyz[mine])
+        return out
 
 
 class FloorPlan:
