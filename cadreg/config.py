@@ -51,12 +51,13 @@ class GraphConfig(_Section):
 
 
 class PartitionConfig(_Section):
-    """A building scanned in one piece, cut into regions: its rooms, found from its floor plan, and the rooms too
-    wide for one region cut into tiles (`site/partition.py`)."""
+    """A building scanned in one piece, cut into regions: its storeys, their rooms, found from their floor plans, and
+    the rooms too long for one region cut into tiles (`site/partition.py`)."""
 
-    above_m: float = Field(8.0, ge=0, description="a map (or a room) no wider than this along x and y stays one "
-                           "region; 0 keeps every map one region")
-    tile_m: float = Field(6.0, gt=0, description="a room wider than above_m is cut into tiles of at most this a side")
+    above_m: float = Field(8.0, ge=0, description="a map no wider than this along x and y stays one region (a room); "
+                           "0 keeps every map one region")
+    tile_m: float = Field(6.0, gt=0, description="a room longer than this along x or y (a corridor, a hall) is cut "
+                          "into equal tiles of at most this a side")
     cell_m: float = Field(0.1, gt=0, description="the floor plan's cell")
     wall_from_m: float = Field(1.2, ge=0, description="points this high above the floor and up to wall_to_m are "
                                "walls on the floor plan (above most furniture, below door lintels)")

@@ -57,12 +57,16 @@ def _floor_and_walls(x_m: float, y_m: float, spacing_m: float = 0.05) -> np.ndar
     return np.concatenate([floor] + walls)
 
 
-def test_a_hall_wider_than_above_m_is_cut_into_tiles_and_a_room_is_not() -> None:
+def test_a_hall_or_a_corridor_longer_than_tile_m_is_cut_into_equal_tiles_and_a_room_is_not() -> None:
     hall = FloorPlan(_floor_and_walls(20.0, 4.0), 0.0, PartitionConfig())
     assert hall.region_names() == ["room0.0.0", "room0.1.0", "room0.2.0", "room0.3.0"]
     # the tiles run along the hall, 5 m each
     xs = np.array([[2.5, 2.0, 0.0], [7.5, 2.0, 0.0], [12.5, 2.0, 0.0], [17.5, 2.0, 0.0]])
     assert hall.region_at(xs).tolist() == [0, 1, 2, 3]
+    # a 7 m corridor: two halves, cut at its middle (copies of each other, as `site compose` cuts a corridor)
+    corridor = FloorPlan(_floor_and_walls(7.0, 2.4), 0.0, PartitionConfig())
+    assert corridor.region_names() == ["room0.0.0", "room0.1.0"]
+    assert corridor.region_at(np.array([[3.45, 1.2, 0.0], [3.55, 1.2, 0.0]])).tolist() == [0, 1]
     room = FloorPlan(_floor_and_walls(6.0, 4.0), 0.0, PartitionConfig())
     assert room.region_names() == ["room0"]
 

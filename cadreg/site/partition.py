@@ -16,11 +16,12 @@ below door lintels); the other cells under the scan are free floor. Free floor w
 the nearest wall or unscanned cell over door_m / 2) is the core of a room, cores split where a doorway narrows the
 floor, cores smaller than min_room_m2 are dropped; each core is grown back over the free floor it reaches
 (`_grown`), and every other cell (walls, furniture, unscanned gaps) goes to the room of the nearest free cell. A
-room wider than above_m along x or y (a hall, a long corridor) is cut into tiles of at most tile_m a side.
+room longer than tile_m along x or y (a corridor, a hall) is cut into equal tiles of at most tile_m a side, as
+`site compose` cuts its corridors into segments.
 
-Points go to the room of their cell, objects to that of their centroid's; the map's rows are put in region order (a
-region is a slice of each cloud), and the building's distance field and the regions' grids are built and stored as
-`site compose` does. A map no wider than above_m stays one region (one room, as before).
+Points go to the region of their cell (and tile), objects to that of their centroid's; the map's rows are put in
+region order (a region is a slice of each cloud), and the building's distance field and the regions' grids are built
+and stored as `site compose` does. A map no wider than above_m stays one region (one room, as before).
 
 A scan of several storeys is cut by storey first (`storey_floors`, `StoreyPlans`): the floor of each storey above the
 map's is the first height 2 m or more (STOREY_GAP_M) over the floor below at which surfaces facing up cover
@@ -28,8 +29,9 @@ min_storey_m2 of the plan; each storey's points (a point belongs to the highest 
 their own floor plan, measured from their own floor, and each of its regions states that floor (`Region.floor_m`):
 the localizer's storeys (`regions.Storeys`) then keep a view on its own storey. A 30-room building of three storeys
 (`/tmp/bldg/st30.json`) given as one scan and cut by rooms alone had 31 % of its unique views right with labels and 23
-wrong `ok` answers (each region held three storeys); by storey, then rooms, 97.2 % and one wrong `ok` (a corridor
-view), as composed 98.6 % and none.
+wrong `ok` answers (each region held three storeys); by storey, then rooms, 98.6 % and none, as composed (with its
+corridors' tiles cut where the points end rather than on the plan's cells, one view down a corridor, which its other
+half repeats, was answered `ok` at the other end: the halves, 3.85 and 3.71 m, were no copies of each other).
 
 The floor plan is the map frame seen from above: only a map whose up is its z (within MAX_TILT_DEG) is cut, as a scan
 mesh's is (a fused map's frame is its first camera's: it stays one region).
@@ -173,8 +175,10 @@ class StoreyPlans:
 
 
 class FloorPlan:
-    """The rooms of a map seen from above (module docstring): `region` labels every cell of the plan's grid (x, y)
-    with its region's index, a room or a tile of one.
+    """The rooms of a map seen from above (module docstring), each a region, or, a room longer than tile_m along x or
+    y (a corridor, a hall), cut into equal tiles of at most tile_m over the extent of its points: a corridor's halves
+    are then copies of each other, as `site compose` cuts its corridors, and a view down it repeated at its other end
+    is found so (`localize/twins.py`).
 
     xyz : (n, 3) the map's points (map frame, z up). floor_m : the floor's height."""
 
@@ -187,8 +191,8 @@ class FloorPlan:
         # A hole in the scan inside its walls (floor no camera saw, under a table) is floor all the same.
         scanned = ndimage.binary_fill_holes(self._cells(xyz))
         walls = self._cells(xyz[(height >= config.wall_from_m) & (height <= config.wall_to_m)])
-        rooms = rooms_of(scanned & ~walls, config)
-        self.region, self._names = self._tiled(rooms, scanned)
+        self.room = rooms_of(scanned & ~walls, config) - 1  # 0 ..
+        self._tiles = self._tiling(xyz)
 
     def _cells(self, xyz: np.ndarray) -> np.ndarray:
         """(shape) bool: the cells holding a point of xyz."""
@@ -202,35 +206,41 @@ class FloorPlan:
         ij = np.floor((np.asarray(xyz, dtype=np.float64).reshape(-1, 3)[:, :2] - self.lo) / self.cell_m)
         return np.clip(ij.astype(np.int64), 0, np.array(self.shape) - 1)
 
-    def region_at(self, xyz: np.ndarray) -> np.ndarray:
-        """(n,) int: the region of each point's cell."""
+    def room_at(self, xyz: np.ndarray) -> np.ndarray:
+        """(n,) int: the room of each point's cell."""
         ij = self._index(xyz)
-        return self.region[ij[:, 0], ij[:, 1]]
+        return self.room[ij[:, 0], ij[:, 1]]
+
+    def _tiling(self, xyz: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
+        """Per room: (its first region index, the low corner (2,) and tile size (2,) of its tiles, their count per
+        axis (2,)); one tile of the room's extent for a room no longer than tile_m."""
+        room = self.room_at(xyz)
+        out, first = [], 0
+        for k in range(int(self.room.max()) + 1):
+            mine = xyz[room == k, :2]
+            lo = mine.min(axis=0) if len(mine) else np.zeros(2)
+            span = np.ptp(mine, axis=0) if len(mine) else np.zeros(2)
+            counts = np.maximum(np.ceil(span / self.config.tile_m), 1).astype(np.int64)
+            out.append((first, lo, np.maximum(span / counts, 1e-9), counts))
+            first += int(counts.prod())
+        return out
+
+    def region_at(self, xyz: np.ndarray) -> np.ndarray:
+        """(n,) int: the region of each point: its room's, or its room's tile it lies over."""
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        room = self.room_at(xyz)
+        out = np.zeros(len(xyz), dtype=np.int64)
+        for k, (first, lo, size, counts) in enumerate(self._tiles):
+            mine = room == k
+            ij = np.clip(np.floor((xyz[mine, :2] - lo) / size).astype(np.int64), 0, counts - 1)
+            out[mine] = first + ij[:, 0] * counts[1] + ij[:, 1]
+        return out
 
     def region_names(self) -> list[str]:
-        """Region ids by region index: room<k>, or room<k>.<i>.<j> for the tiles of a room too wide for one."""
-        return self._names
-
-    def _tiled(self, rooms: np.ndarray, scanned: np.ndarray) -> tuple[np.ndarray, list[str]]:
-        """(cells' region index, names): each room one region, or cut into tiles of at most tile_m when its scanned
-        cells span more than above_m along x or y."""
-        config = self.config
-        region = np.zeros(self.shape, dtype=np.int64)
-        names: list[str] = []
-        for k in range(1, int(rooms.max()) + 1):
-            cells, seen = np.argwhere(rooms == k), np.argwhere((rooms == k) & scanned)
-            lo, span = seen.min(axis=0), (np.ptp(seen, axis=0) + 1) * self.cell_m
-            if np.all(span <= config.above_m):
-                region[rooms == k] = len(names)
-                names.append(f"room{k - 1}")
-                continue
-            counts = np.ceil(span / config.tile_m).astype(np.int64)
-            tile = np.clip(((cells - lo) * self.cell_m / (span / counts)).astype(np.int64), 0, counts - 1)
-            for i, j in sorted({(int(a), int(b)) for a, b in tile}):
-                mine = cells[(tile[:, 0] == i) & (tile[:, 1] == j)]
-                region[mine[:, 0], mine[:, 1]] = len(names)
-                names.append(f"room{k - 1}.{i}.{j}")
-        return region, names
+        """Region ids by region index: room<k>, or room<k>.<i>.<j> for the tiles of a room longer than tile_m."""
+        return [f"room{k}" if counts.prod() == 1 else f"room{k}.{i}.{j}"
+                for k, (_, _, _, counts) in enumerate(self._tiles)
+                for i in range(counts[0]) for j in range(counts[1])]
 
 
 def rooms_of(free: np.ndarray, config: PartitionConfig) -> np.ndarray:
