@@ -205,3 +205,33 @@ def test_a_scan_of_two_storeys_is_cut_by_storey_and_a_view_of_the_upper_room_is_
     result = Localizer.from_site(site).localize(frame)
     found = [h.region for h in result.hypotheses if near(h.T_map_camera, T_true)]
     assert found == ["s1.room0"], (result.status, result.diagnostics.notes)
+
+
+def test_render_layout_writes_a_building_as_one_scan_that_site_build_cuts_into_its_rooms(
+        scene0470_site_dir: Path, tmp_path: Path) -> None:
+    from cadreg.io.ply import read_scan
+    from tracking_rooms import DROPPED
+
+    rooms = []
+    for k in range(COPIES):
+        T = np.eye(4)
+        T[0, 3] = COPY_PITCH_M * k
+        rooms.append({"name": f"r{k}", "bundle": str(scene0470_site_dir), "T_building_room": T.tolist()}
+                     | ({"drop_objects": DROPPED} if k == COPIES - 1 else {}))
+    layout = tmp_path / "LAYOUT.json"
+    layout.write_text(json.dumps({"site_id": "row", "rooms": rooms}))
+    scan = tmp_path / "row.ply"
+    run = subprocess.run([sys.executable, "-m", "cadreg.cli.main", "render", "--layout", str(layout), "--mesh-out",
+                          str(scan), "--n", "0", "--out", str(tmp_path / "frames")], capture_output=True, text=True,
+                         timeout=600)
+    assert run.returncode == 0, run.stderr
+    mesh = read_scan(scan)
+    # the scan holds what its faces do: none of the vertices the last copy's missing chair and bin had
+    assert np.array_equal(np.unique(mesh.faces), np.arange(len(mesh.points)))
+    assert mesh.labels is not None
+    built = _build(scan, tmp_path / "site")
+    assert built.returncode == 0 and f"{COPIES} regions" in built.stdout, built.stderr
+    regions = sorted(Site.load(tmp_path / "site").regions, key=lambda r: r.bounds[0, 0])
+    assert [r.id for r in regions] == [f"room{k}" for k in range(COPIES)]
+    assert len(regions[-1].nodes) < len(regions[0].nodes) == len(regions[1].nodes)
+    assert regions[-1].points < regions[0].points

@@ -35,6 +35,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "--mesh/--labels is every room's mesh (default: the scan each room bundle was built from)")
     p.add_argument("--oracle-agreement", type=float, default=None,
                    help="with --layout: share of agreeing pixels that makes a view repeated (default 0.97)")
+    p.add_argument("--mesh-out", type=Path, metavar="PLY",
+                   help="with --layout: also write the building as one mesh (colours, and NYU40 'label' where the "
+                        "rooms have them), as a scan of the whole building would be: `site build --scan PLY` makes "
+                        "a site of it (--n 0: the mesh alone)")
     p.add_argument("--out", type=Path, required=True, help="frames folder to write")
     p.add_argument("--n", type=int, default=0, help="number of frames (default: all --poses)")
     p.add_argument("--seed", type=int, default=0)
@@ -165,13 +169,13 @@ def _render_layout(args: argparse.Namespace, config) -> int:
     """`render --layout`: views inside the building's rooms, and views.json (written here, not in the core)."""
     import time
 
-    from ..render.building import OracleConfig, building_rooms, render_building_views
+    from ..render.building import OracleConfig, building_mesh, building_rooms, render_building_views
     from ..site.compose import read_layout
 
     if args.site is not None or args.poses is not None:
         raise ConfigError("--layout renders sampled views inside its rooms: no --site or --poses with it")
-    if args.n <= 0:
-        raise ConfigError("--n must be positive")
+    if args.n < 0 or (args.n == 0 and args.mesh_out is None):
+        raise ConfigError("--n must be positive (0 only with --mesh-out)")
     try:
         oracle = OracleConfig() if args.oracle_agreement is None else OracleConfig(min_agreement=args.oracle_agreement)
     except ValueError as exc:
@@ -180,6 +184,11 @@ def _render_layout(args: argparse.Namespace, config) -> int:
     layout = read_layout(args.layout)
     meshes, nodes, desc = _layout_meshes(args, layout)
     rooms = building_rooms(layout, meshes, nodes)
+    if args.mesh_out is not None:
+        building_mesh(rooms).write_ply(args.mesh_out)
+        if args.n == 0:
+            print(json.dumps({"mesh_out": str(args.mesh_out), "rooms": len(rooms)}))
+            return 0
     with tqdm(total=args.n, desc="render", unit="frame") as bar:
         def progress(done: int, total: int) -> None:
             bar.update(done - bar.n)

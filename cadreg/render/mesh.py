@@ -85,6 +85,19 @@ class LabelledMesh:
             raise InvalidFileError(mesh_path, "has no faces: the renderer needs a triangle mesh")
         return cls(scan.points, scan.faces, scan.colors, scan.labels)
 
+    def write_ply(self, path: str | Path) -> None:
+        """Write the mesh as a scan PLY `from_ply` and `site build --scan` read: the vertices its faces use (a
+        building's copy of a room keeps the vertices of the objects it lacks, unreferenced: `site build` reads a
+        scan's vertices as its points), their colours and, when it has labels, their `label`; the faces."""
+        from ..io.ply import write_ply
+
+        used, faces = np.unique(self.faces, return_inverse=True)
+        vertex = {axis: self.vertices[used, k].astype(np.float32) for k, axis in enumerate("xyz")}
+        vertex |= {channel: self.colors[used, k] for k, channel in enumerate(("red", "green", "blue"))}
+        if self.labels is not None:
+            vertex["label"] = self.labels[used]
+        write_ply(path, vertex, faces.reshape(-1, 3))
+
 
 def object_instances(faces: np.ndarray, labels: np.ndarray, structure: frozenset[int]) -> np.ndarray:
     """(n,) int32 instance id per vertex: connected components of same-label object vertices; -1 for structure."""
