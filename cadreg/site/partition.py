@@ -4,9 +4,9 @@
 label-free search rank regions, a pose is refined and checked on its region's map, poses are compared along the
 frame's rays through the building's stored distance field, and rooms that repeat one another are looked at for the
 same view (`localize/twins.py`; DESIGN §1). A building scanned whole (one mesh of a floor, `site build --scan`) had
-one region and took the one-room path at a building's size: the 10-room benchmark building (`/tmp/bldg/layout10.json`)
-given as one region answered its unique views 87.8 % right with labels and 75.7 % without (4 wrong `ok` answers),
-against 100 % and 98.6 % as ten rooms. Cut into a grid of tiles instead, it did well without labels (98.6 %, no
+one region and took the one-room path at a building's size: the 10-room benchmark building (`/tmp/bldg/layout10.json`,
+its composed clouds given as one region) answered its unique views 87.8 % right with labels and 75.7 % without (4
+wrong `ok` answers), against 100 % and 98.6 % as ten rooms. Cut into a grid of tiles instead, it did well without labels (98.6 %, no
 wrong `ok`) but not with them (5 wrong `ok`, each the same view in another room: tiles do not repeat as rooms do,
 and the twin check had nothing to compare).
 
@@ -60,9 +60,9 @@ FLOOR_BIN_M = 0.05
 
 
 def partitioned(site: Site, config: PartitionConfig = PartitionConfig()) -> Site:
-    """`site` (one region) cut into its rooms (and tiles of rooms too wide) when its map is wider than
-    config.above_m along x or y and its up is its z; else `site` itself. The cut site states its up; its version is
-    left to the caller (`Site.refresh_version`)."""
+    """`site` (one region) cut by storey and room (and rooms too long into tiles) when its map is wider than
+    config.above_m along x or y, its up is its z and its plan holds two regions or more; else `site` itself. The cut
+    site states its up; its version is left to the caller (`Site.refresh_version`)."""
     if config.above_m <= 0 or len(site.regions) > 1:
         return site
     both = site.cloud("both")
