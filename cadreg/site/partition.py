@@ -39,6 +39,8 @@ mesh's is (a fused map's frame is its first camera's: it stays one region).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy import ndimage
 
@@ -57,6 +59,7 @@ UP_SAMPLE = 200_000
 # height bins of FLOOR_BIN_M (`storey_floors`).
 FLOOR_NORMAL_Z = 0.9
 FLOOR_BIN_M = 0.05
+FLOOR_SAMPLE = 2_000_000
 
 
 def partitioned(site: Site, config: PartitionConfig = PartitionConfig()) -> Site:
@@ -119,15 +122,20 @@ def storey_floors(xyz: np.ndarray, normals: np.ndarray, floor_m: float, config: 
     plan, or, within a metre above that, the height where they cover the most (the floor, not a landing under it).
     Table tops and seats lie within STOREY_GAP_M of their floor; a ceiling faces down.
     xyz, normals : (n, 3) the map's points and normals (map frame, z up)."""
-    facing = normals[:, 2] > FLOOR_NORMAL_Z
+    facing = np.flatnonzero(normals[:, 2] > FLOOR_NORMAL_Z)
+    # A plan's cell holds tens of points: a sample of them finds the cells all the same.
+    facing = facing[:: max(1, len(facing) // FLOOR_SAMPLE)]
     height = xyz[facing, 2] - floor_m
     level = np.floor(height / FLOOR_BIN_M).astype(np.int64)
     cell = np.floor(xyz[facing, :2] / config.cell_m).astype(np.int64)
     above = level >= 0
-    # a bin's area counts the cells of the bins beside it too: a floor's points straddle a bin's edge
-    keys = np.unique(np.concatenate([np.stack([level[above] + d, cell[above, 0], cell[above, 1]], axis=1)
-                                     for d in (-1, 0, 1)]), axis=0)
-    levels, cells = np.unique(keys[:, 0], return_counts=True)
+    height, level, cell = height[above], level[above], cell[above] - cell[above].min(axis=0, initial=0)
+    # Each (bin, cell) once, as one integer. A bin's area counts the cells of the bins beside it too: a floor's points
+    # straddle a bin's edge.
+    span = cell.max(axis=0, initial=0) + 1
+    flat = cell[:, 0] * span[1] + cell[:, 1]
+    keys = np.unique(np.concatenate([(level + d + 1) * (span[0] * span[1]) + flat for d in (-1, 0, 1)]))
+    levels, cells = np.unique(keys // (span[0] * span[1]) - 1, return_counts=True)
     area = cells * config.cell_m ** 2
     floors = [float(floor_m)]
     for b in levels[area >= config.min_storey_m2]:
@@ -174,6 +182,17 @@ class StoreyPlans:
         return out
 
 
+@dataclass(frozen=True)
+class Tiles:
+    """The tiles of a floor plan's rooms, by room: first (r,) the region index of its first tile, lo (r, 2) the low
+    corner of its tiles, size (r, 2) a tile's size, counts (r, 2) its tiles along x and y."""
+
+    first: np.ndarray
+    lo: np.ndarray
+    size: np.ndarray
+    counts: np.ndarray
+
+
 class FloorPlan:
     """The rooms of a map seen from above (module docstring), each a region, or, a room longer than tile_m along x or
     y (a corridor, a hall), cut into equal tiles of at most tile_m over the extent of its points: a corridor's halves
@@ -211,35 +230,31 @@ class FloorPlan:
         ij = self._index(xyz)
         return self.room[ij[:, 0], ij[:, 1]]
 
-    def _tiling(self, xyz: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
-        """Per room: (its first region index, the low corner (2,) and tile size (2,) of its tiles, their count per
-        axis (2,)); one tile of the room's extent for a room no longer than tile_m."""
+    def _tiling(self, xyz: np.ndarray) -> Tiles:
+        """Each room's tiles, over the extent of its points: one for a room no longer than tile_m."""
+        rooms = int(self.room.max()) + 1
         room = self.room_at(xyz)
-        out, first = [], 0
-        for k in range(int(self.room.max()) + 1):
-            mine = xyz[room == k, :2]
-            lo = mine.min(axis=0) if len(mine) else np.zeros(2)
-            span = np.ptp(mine, axis=0) if len(mine) else np.zeros(2)
-            counts = np.maximum(np.ceil(span / self.config.tile_m), 1).astype(np.int64)
-            out.append((first, lo, np.maximum(span / counts, 1e-9), counts))
-            first += int(counts.prod())
-        return out
+        lo, hi = np.full((rooms, 2), np.inf), np.full((rooms, 2), -np.inf)
+        np.minimum.at(lo, room, xyz[:, :2])
+        np.maximum.at(hi, room, xyz[:, :2])
+        seen = np.isfinite(lo[:, 0])
+        lo[~seen], hi[~seen] = 0.0, 0.0
+        counts = np.maximum(np.ceil((hi - lo) / self.config.tile_m), 1).astype(np.int64)
+        first = np.concatenate([[0], np.cumsum(counts.prod(axis=1))[:-1]])
+        return Tiles(first, lo, np.maximum((hi - lo) / counts, 1e-9), counts)
 
     def region_at(self, xyz: np.ndarray) -> np.ndarray:
         """(n,) int: the region of each point: its room's, or its room's tile it lies over."""
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         room = self.room_at(xyz)
-        out = np.zeros(len(xyz), dtype=np.int64)
-        for k, (first, lo, size, counts) in enumerate(self._tiles):
-            mine = room == k
-            ij = np.clip(np.floor((xyz[mine, :2] - lo) / size).astype(np.int64), 0, counts - 1)
-            out[mine] = first + ij[:, 0] * counts[1] + ij[:, 1]
-        return out
+        t = self._tiles
+        ij = np.clip(np.floor((xyz[:, :2] - t.lo[room]) / t.size[room]).astype(np.int64), 0, t.counts[room] - 1)
+        return t.first[room] + ij[:, 0] * t.counts[room, 1] + ij[:, 1]
 
     def region_names(self) -> list[str]:
         """Region ids by region index: room<k>, or room<k>.<i>.<j> for the tiles of a room longer than tile_m."""
         return [f"room{k}" if counts.prod() == 1 else f"room{k}.{i}.{j}"
-                for k, (_, _, _, counts) in enumerate(self._tiles)
+                for k, counts in enumerate(self._tiles.counts)
                 for i in range(counts[0]) for j in range(counts[1])]
 
 
