@@ -71,12 +71,15 @@ def test_a_hall_or_a_corridor_longer_than_tile_m_is_cut_into_equal_tiles_and_a_r
     assert room.region_names() == ["room0"]
 
 
-def test_a_room_sized_map_and_a_map_whose_up_is_not_z_stay_one_region(scene0470_site_dir: Path) -> None:
+def test_a_room_sized_map_and_a_map_whose_up_is_not_z_stay_one_region(scene0470_site_dir: Path,
+                                                                         caplog: pytest.LogCaptureFixture) -> None:
     site = Site.load(scene0470_site_dir)
     assert partitioned(site) is site  # 3.5 m x 2.9 m
     tilted = Site(site.site_id, "", dict(site.manifest) | {"up": [0.0, 1.0, 0.0]}, site.map, site.raw, site.graph,
                   site.classes, site.label_maps)
-    assert partitioned(tilted, PartitionConfig(above_m=1.0)) is tilted
+    with caplog.at_level("INFO", logger="cadreg.site"):
+        assert partitioned(tilted, PartitionConfig(above_m=1.0)) is tilted
+    assert "kept as one region: its up is not its z" in caplog.text
     # and with the limit below its size, the one room is one region all the same (no second core)
     assert partitioned(site, PartitionConfig(above_m=1.0)) is site
 

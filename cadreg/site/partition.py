@@ -39,6 +39,7 @@ mesh's is (a fused map's frame is its first camera's: it stays one region).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,6 +51,8 @@ from ..localize.regions import region_grids
 from ..localize.score import building_field
 from .bundle import Site
 from .regions import BELOW_FLOOR_M, STOREY_GAP_M, region_from_points, to_manifest
+
+log = logging.getLogger("cadreg.site")
 
 # A map is cut into regions only when its up lies within this of its z (degrees).
 MAX_TILT_DEG = 5.0
@@ -74,6 +77,8 @@ def partitioned(site: Site, config: PartitionConfig = PartitionConfig()) -> Site
         return site
     up = site_up(site)
     if up is None:
+        log.info("site %s: a map %.1f x %.1f m wide kept as one region: its up is not its z (a fused map's frame is "
+                 "its first camera's)", site.site_id, *np.ptp(xyz[:, :2], axis=0))
         return site
     step = max(1, len(both) // UP_SAMPLE)
     normals = both.normals.astype(np.float64)
