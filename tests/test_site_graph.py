@@ -115,6 +115,9 @@ def test_merge_stacked_joins_seat_and_base_but_not_neighbours():
     assert [(c.class_index, len(c.indices)) for c in merged] == [(2, 2 * n), (2, n), (4, n)]
     np.testing.assert_array_equal(merged[0].indices, np.arange(2 * n))
     assert len(merge_stacked(pts, clusters, 1.0)) == 3  # the base lies fully under the seat
+    # the same chair a storey up is another chair
+    upstairs = np.vstack([seat, seat + [0, 0, 3.0]])
+    assert len(merge_stacked(upstairs, [Cluster(2, np.arange(n)), Cluster(2, np.arange(n, 2 * n))], 0.5)) == 2
 
 
 def test_dense_clouds_cluster_on_voxels_with_the_same_answer():
