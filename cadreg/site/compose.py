@@ -332,17 +332,24 @@ def compose_site(layout: Layout, root: str | Path) -> Site:
                                        for r in rooms]}
     if layout.corridors:
         manifest["inputs"]["corridors"] = [c.model_dump() for c in layout.corridors]
-    # The building's distance field is built here, room by room, and stored: a worker maps it instead of
-    # rebuilding it over the whole building at every start.
-    field_grid = building_field([np.concatenate([m.points, r.points]) for m, r in zip(maps, raws)])
     site = Site(site_id=layout.site_id, version="", manifest=manifest, map=PointSet.concat(maps),
                 raw=PointSet.concat(raws), graph=build_graph(nodes, first.edge_max_m), classes=list(first.classes),
-                label_maps=dict(first.label_maps), field_grid=field_grid)
-    # Each region's grid of the points its localizer's region map holds (itself and a halo of its neighbours), with
-    # the default localizer settings: a worker reads a region's rows instead of gathering and gridding them (a
-    # one-room site's localizer builds its one map at start, from the whole cloud).
-    lc = LocalizeConfig()
-    if len(site.regions) > 1:
-        site.region_grids = region_grids(site, site.regions, cloud=lc.refine.map_points, halo_m=lc.regions.halo_m)
+                label_maps=dict(first.label_maps))
+    store_search_structures(site)
     site.refresh_version()
     return site
+
+
+def store_search_structures(site: Site) -> None:
+    """Build a building's search structures from its regions and keep them with it, to be stored in its bundle
+    (`site compose`, and `site build` of a building scanned in one piece: `partition.py`):
+    - the distance field, built region by region (`building_field`): a worker maps it instead of rebuilding it
+      over the whole building at every start;
+    - with several regions, each one's grid of the points its localizer's region map holds (itself and a halo of
+      its neighbours), with the default localizer settings: a worker reads a region's rows instead of gathering and
+      gridding them (a one-room site's localizer builds its one map at start, from the whole cloud)."""
+    site.field_grid = building_field([np.concatenate([site.map.points[slice(*r.map_range)],
+                                                      site.raw.points[slice(*r.raw_range)]]) for r in site.regions])
+    if len(site.regions) > 1:
+        lc = LocalizeConfig()
+        site.region_grids = region_grids(site, site.regions, cloud=lc.refine.map_points, halo_m=lc.regions.halo_m)

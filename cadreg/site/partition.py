@@ -45,11 +45,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from ..config import LocalizeConfig, PartitionConfig
+from ..config import PartitionConfig
 from ..localize.gravity import map_floor_height, map_up_axis
-from ..localize.regions import region_grids
-from ..localize.score import building_field
 from .bundle import Site
+from .compose import store_search_structures
 from .regions import BELOW_FLOOR_M, STOREY_GAP_M, region_from_points, to_manifest
 
 log = logging.getLogger("cadreg.site")
@@ -90,7 +89,7 @@ def partitioned(site: Site, config: PartitionConfig = PartitionConfig()) -> Site
     site_map = site.map.take(np.argsort(map_region, kind="stable"))
     site_raw = site.raw.take(np.argsort(raw_region, kind="stable"))
     map_region, raw_region = np.sort(map_region), np.sort(raw_region)
-    regions, parts = [], []
+    regions = []
     for k in np.union1d(map_region, raw_region):
         map_range = (int(np.searchsorted(map_region, k)), int(np.searchsorted(map_region, k, side="right")))
         raw_range = (int(np.searchsorted(raw_region, k)), int(np.searchsorted(raw_region, k, side="right")))
@@ -98,14 +97,12 @@ def partitioned(site: Site, config: PartitionConfig = PartitionConfig()) -> Site
         regions.append(region_from_points(plans.names[k], points,
                                           [n.id for n, r in zip(nodes, node_region) if r == k], map_range, raw_range,
                                           floor_m=plans.region_floor_m[k]))
-        parts.append(np.concatenate(points))
     if len(regions) < 2:
         return site
     manifest = dict(site.manifest) | {"regions": to_manifest(regions), "up": [float(x) for x in up]}
     out = Site(site_id=site.site_id, version="", manifest=manifest, map=site_map, raw=site_raw, graph=site.graph,
-               classes=list(site.classes), label_maps=dict(site.label_maps), field_grid=building_field(parts))
-    lc = LocalizeConfig()
-    out.region_grids = region_grids(out, out.regions, cloud=lc.refine.map_points, halo_m=lc.regions.halo_m)
+               classes=list(site.classes), label_maps=dict(site.label_maps))
+    store_search_structures(out)
     return out
 
 
