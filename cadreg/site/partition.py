@@ -47,6 +47,7 @@ from scipy import ndimage
 
 from ..config import PartitionConfig
 from ..localize.gravity import map_floor_height, map_up_axis
+from ..pointset import PointSet
 from .bundle import Site
 from .compose import store_search_structures
 from .regions import BELOW_FLOOR_M, STOREY_GAP_M, region_from_points, to_manifest
@@ -74,15 +75,14 @@ def partitioned(site: Site, config: PartitionConfig = PartitionConfig()) -> Site
     xyz = both.points.astype(np.float64)
     if not len(xyz) or np.all(np.ptp(xyz[:, :2], axis=0) <= config.above_m):
         return site
-    up = site_up(site)
+    up = site_up(site, both)
     if up is None:
         log.info("site %s: a map %.1f x %.1f m wide kept as one region: its up is not its z (a fused map's frame is "
                  "its first camera's)", site.site_id, *np.ptp(xyz[:, :2], axis=0))
         return site
     step = max(1, len(both) // UP_SAMPLE)
-    normals = both.normals.astype(np.float64)
-    floor_m = map_floor_height(xyz[::step], normals[::step], up)
-    plans = StoreyPlans(xyz, normals, floor_m, config)
+    floor_m = map_floor_height(xyz[::step], both.normals[::step].astype(np.float64), up)
+    plans = StoreyPlans(xyz, both.normals, floor_m, config)
     map_region, raw_region = plans.region_at(site.map.points), plans.region_at(site.raw.points)
     nodes = site.graph.nodes
     node_region = plans.region_at(np.array([n.centroid for n in nodes]).reshape(-1, 3))
@@ -106,12 +106,11 @@ def partitioned(site: Site, config: PartitionConfig = PartitionConfig()) -> Site
     return out
 
 
-def site_up(site: Site) -> np.ndarray | None:
-    """(3,) the up a localizer takes for `site` (as it states it, else found from its map's surfaces) when it lies
-    within MAX_TILT_DEG of z; else None."""
+def site_up(site: Site, cloud: PointSet) -> np.ndarray | None:
+    """(3,) the up a localizer takes for `site` (as it states it, else found from the surfaces of `cloud`, its map:
+    `Site.cloud("both")`) when it lies within MAX_TILT_DEG of z; else None."""
     up = site.up
     if up is None:
-        cloud = site.cloud("both")
         step = max(1, len(cloud) // UP_SAMPLE)
         up = map_up_axis(cloud.normals[::step].astype(np.float64), points=cloud.points[::step].astype(np.float64))
     up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
@@ -123,7 +122,7 @@ def storey_floors(xyz: np.ndarray, normals: np.ndarray, floor_m: float, config: 
     first height STOREY_GAP_M or more over the floor below at which surfaces facing up cover min_storey_m2 of the
     plan, or, within a metre above that, the height where they cover the most (the floor, not a landing under it).
     Table tops and seats lie within STOREY_GAP_M of their floor; a ceiling faces down.
-    xyz, normals : (n, 3) the map's points and normals (map frame, z up)."""
+    xyz, normals : (n, 3) the map's points and normals (map frame, z up; any float type)."""
     facing = np.flatnonzero(normals[:, 2] > FLOOR_NORMAL_Z)
     # A plan's cell holds tens of points: a sample of them finds the cells all the same.
     facing = facing[:: max(1, len(facing) // FLOOR_SAMPLE)]
