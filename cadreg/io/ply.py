@@ -7,6 +7,7 @@ only for some layouts. PLY is simple enough that a header parser plus numpy stru
     read_ply(path) -> PlyData          every element, every property, as numpy arrays
     read_scan(path, labels_path=None)  -> ScanPoints (points, colours, normals, labels, faces) for a site build
     write_ply(path, vertex, faces=None) binary little-endian
+    scan_ply_bytes(points, colors, faces, labels=None) a scan PLY as read_scan reads it
 """
 
 from __future__ import annotations
@@ -332,6 +333,17 @@ def read_scan(path: str | Path, labels_path: str | Path | None = None, *, label_
 def write_ply(path: str | Path, vertex: dict[str, np.ndarray], faces: np.ndarray | None = None) -> None:
     """Write a binary little-endian PLY (see `ply_bytes`)."""
     Path(path).write_bytes(ply_bytes(vertex, faces))
+
+
+def scan_ply_bytes(points: np.ndarray, colors: np.ndarray, faces: np.ndarray | None = None,
+                   labels: np.ndarray | None = None) -> bytes:
+    """A scan PLY as `read_scan` reads it: x, y, z (points (n, 3), their dtype kept), red, green, blue (colors (n, 3)
+    uint8), the per-vertex NYU40 `label` (labels (n,)) when given, and the faces."""
+    vertex = {axis: points[:, k] for k, axis in enumerate("xyz")}
+    vertex |= {channel: colors[:, k] for k, channel in enumerate(("red", "green", "blue"))}
+    if labels is not None:
+        vertex["label"] = labels
+    return ply_bytes(vertex, faces)
 
 
 def ply_bytes(vertex: dict[str, np.ndarray], faces: np.ndarray | None = None) -> bytes:

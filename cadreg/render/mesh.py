@@ -89,14 +89,11 @@ class LabelledMesh:
         """Write the mesh as a scan PLY `from_ply` and `site build --scan` read: the vertices its faces use (a
         building's copy of a room keeps the vertices of the objects it lacks, unreferenced: `site build` reads a
         scan's vertices as its points), their colours and, when it has labels, their `label`; the faces."""
-        from ..io.ply import write_ply
+        from ..io.ply import scan_ply_bytes
 
         used, faces = np.unique(self.faces, return_inverse=True)
-        vertex = {axis: self.vertices[used, k].astype(np.float32) for k, axis in enumerate("xyz")}
-        vertex |= {channel: self.colors[used, k] for k, channel in enumerate(("red", "green", "blue"))}
-        if self.labels is not None:
-            vertex["label"] = self.labels[used]
-        write_ply(path, vertex, faces.reshape(-1, 3))
+        Path(path).write_bytes(scan_ply_bytes(self.vertices[used].astype(np.float32), self.colors[used],
+                                              faces.reshape(-1, 3), None if self.labels is None else self.labels[used]))
 
 
 def object_instances(faces: np.ndarray, labels: np.ndarray, structure: frozenset[int]) -> np.ndarray:

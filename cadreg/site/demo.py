@@ -31,7 +31,7 @@ from ..config import SiteBuildConfig
 from ..errors import InvalidArgument
 from ..geometry import R_to_quat_wxyz, make_T
 from ..io.bundle_files import write_bundle_dir
-from ..io.ply import ply_bytes
+from ..io.ply import scan_ply_bytes
 
 ROOM_X_M, ROOM_Y_M, ROOM_Z_M = 6.0, 5.0, 2.6
 SITE_ID = "demo_room"
@@ -306,8 +306,7 @@ def write_demo_inputs(out_dir: str | Path) -> DemoInputs:
     """Write the demo scan, its Scan2CAD JSON and the CAD library into `out_dir`; returns their paths."""
     root = Path(out_dir)
     v, f, c, lab = demo_scan()
-    scan = ply_bytes({"x": v[:, 0], "y": v[:, 1], "z": v[:, 2], "red": c[:, 0], "green": c[:, 1], "blue": c[:, 2],
-                      "label": lab}, faces=f)
+    scan = scan_ply_bytes(v, c, f, lab)
     write_bundle_dir(root, {SCAN_NAME: scan,
                             SCAN2CAD_NAME: json.dumps(demo_scan2cad(), indent=1).encode()})
     cad_root = root / "cad"
