@@ -115,6 +115,54 @@ def test_copies_of_a_view_are_not_told_apart_by_an_object_at_the_match_radius() 
     assert views._near_as(np.array([[0.65], [0.59]]), np.array([np.inf])).ravel().tolist() == [False, True]
 
 
+def test_a_large_object_seen_in_part_is_placed_by_its_box_not_by_a_sliver_beside_it() -> None:
+    """A whiteboard 2.4 m wide seen in part has its centroid a metre from its node's centre, inside its box. Rooms
+    "a", "b" and "c" hold the board (turned by odd angles, as their rooms are); "b" also holds a 0.3 m sliver of it,
+    clustered apart, where the frame's centroid lands; "d" lacks the board. By centres alone only "b" placed the
+    board; by boxes "a", "b" and "c" place it alike (a view they repeat is not told apart by it), and "d" does not."""
+    from types import SimpleNamespace
+
+    from cadreg.localize.building_views import BuildingViews
+
+    def turn(deg: float) -> np.ndarray:
+        return Rotation.from_euler("z", deg, degrees=True).as_matrix()
+
+    board, sliver = np.array([2.4, 0.13, 0.46]), np.array([0.3, 0.02, 0.3])
+    shift = {"a": 0.0, "b": 10.0, "c": 20.0, "d": 30.0}
+    yaw = {"a": 0.0, "b": 30.0, "c": 72.0, "d": 0.0}
+    seen = np.array([1.0, 0.0, 1.0])  # the frame's board centroid, room frame: a metre along the board from its centre
+    centres, extents, Rs, cls = [], [], [], []
+    for room in "abc":
+        R = turn(yaw[room])
+        centres.append(R @ np.array([0.0, 0.0, 1.0]) + [shift[room], 0, 0])
+        extents.append(board), Rs.append(R), cls.append(0)
+    R_b = turn(yaw["b"])
+    centres.append(R_b @ seen + [shift["b"], 0, 0]), extents.append(sliver), Rs.append(R_b), cls.append(0)
+    centres.append(np.array([shift["d"], 3.0, 0.4])), extents.append(np.full(3, 0.5)), Rs.append(np.eye(3)), cls.append(1)
+    centre = np.array(centres)
+    graph = MapGraph([f"n{i}" for i in range(len(cls))], np.array(cls), centre, np.array(extents),
+                     centre[:, 2] + 0.2, centre, np.array(Rs))
+    views = BuildingViews()
+    views.config, views.graph = LocalizeConfig(), graph
+    scan = SimpleNamespace(clusters=[SimpleNamespace(cls=0, centroid=np.zeros(3))], view_shares=np.array([0.5]))
+    poses = []
+    for room in "abcd":  # the camera at the frame's board centroid (camera frame = room frame there)
+        T = np.eye(4)
+        T[:3, :3] = turn(yaw[room])
+        T[:3, 3] = turn(yaw[room]) @ seen + [shift[room], 0, 0]
+        poses.append(T)
+    distances = views._object_distances(scan, np.array(poses))[:, 0]
+    assert distances[:3].tolist() == [0.0, 0.0, 0.0] and np.isinf(distances[3])
+    assert views._shows_objects(scan, poses[0], poses[1:]).tolist() == [True, True, False]
+    # the boxes' test itself: inside, within the margin, beyond it, another class
+    T_a = np.eye(4)
+    assert graph.in_box_of_class(np.array([[1.15, 0.0, 1.0], [1.25, 0.0, 1.0], [1.35, 0.0, 1.0]]), 0, 0.1).tolist() == [
+        True, True, False]
+    assert not graph.in_box_of_class(T_a[:3, 3][None] + [0, 0, 1.0], 1, 0.1).any()
+    # without boxes (a graph made of centres alone) no point is in one
+    assert not MapGraph(graph.ids, graph.cls, graph.centroid).in_box_of_class(centre[:1], 0, 0.1).any()
+
+
 def test_a_room_with_too_few_objects_has_no_copies() -> None:
     graph, region = _graph([(np.array([[0.0, 0, 0], [1, 0, 0]]), np.array([0, 1])),
                             (np.array([[5.0, 0, 0], [6, 0, 0]]), np.array([0, 1]))])

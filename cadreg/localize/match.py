@@ -34,7 +34,8 @@ class MapGraph:
     """The site's semantic graph as arrays, map frame.
 
     ids : node ids (str). cls : (k,) int class index (into Site.classes). centroid : (k, 3) float64, metres.
-    extent : (k, 3) float64 box extent (its own axes), metres; zeros when unknown.
+    extent : (k, 3) float64 box extent (its own axes), metres; zeros when unknown. box_center : (k, 3) and box_R :
+    (k, 3, 3) (columns the box axes) of those boxes, map frame; empty when unknown (then no point is in a box).
     """
 
     ids: list[str]
@@ -42,6 +43,8 @@ class MapGraph:
     centroid: np.ndarray
     extent: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     top: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (k,) highest point of the box along up, metres
+    box_center: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    box_R: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
     _by_class: dict = field(default_factory=dict, init=False, repr=False, compare=False)
     _near: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
     _pairs: dict = field(default_factory=dict, init=False, repr=False, compare=False)
@@ -100,6 +103,29 @@ class MapGraph:
         d, k = tree.query(xyz, distance_upper_bound=radius_m)  # none within: d = inf, k = len(nodes)
         return np.where(d < radius_m, nodes[np.minimum(k, len(nodes) - 1)], -1)
 
+    def in_box_of_class(self, xyz: np.ndarray, cls: int, margin_m: float) -> np.ndarray:
+        """(m,) bool: whether each point of xyz ((m, 3), map frame) lies in the box of a node of class `cls`, grown
+        by margin_m on every side. The nodes looked at are those whose centroids (the class's KD-tree) lie near enough
+        for any of their boxes to hold the point: the centroid's distance from its box's centre plus the box's
+        half-diagonal, grown by the margin's diagonal, the class's largest."""
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        inside = np.zeros(len(xyz), dtype=bool)
+        nodes, tree = self._class_tree(cls)
+        if tree is None or len(self.box_center) == 0:
+            return inside
+        reach = float(np.max(np.linalg.norm(self.centroid[nodes] - self.box_center[nodes], axis=1)
+                             + 0.5 * np.linalg.norm(self.extent[nodes], axis=1))) + np.sqrt(3.0) * margin_m
+        near = tree.query_ball_point(xyz, reach)
+        point = np.repeat(np.arange(len(xyz)), [len(n) for n in near])
+        if not len(point):
+            return inside
+        node = nodes[np.concatenate(near).astype(np.int64)]
+        # each point in each near box's own axes: Rᵀ (p - c), as `site.objects.points_in_box` for many boxes at once
+        local = np.einsum("kji,kj->ki", self.box_R[node], xyz[point] - self.box_center[node])
+        hit = np.all(np.abs(local) <= 0.5 * self.extent[node] + margin_m, axis=1)
+        inside[point[hit]] = True
+        return inside
+
     @classmethod
     def from_site(cls, site: Site, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> "MapGraph":
         """The nodes of the site's graph whose class the site knows; `top` along the unit vector `up`."""
@@ -113,6 +139,8 @@ class MapGraph:
             np.array([n.centroid for n in nodes], dtype=float).reshape(-1, 3),
             np.array([n.box_extent for n in nodes], dtype=float).reshape(-1, 3),
             np.array(tops, dtype=float),
+            np.array([n.box_center for n in nodes], dtype=float).reshape(-1, 3),
+            np.array([n.box_R for n in nodes], dtype=float).reshape(-1, 3, 3),
         )
 
 
