@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cadreg.geometry import pose_errors, rotation_between
-from cadreg.localize.bbs import SCALE, GridPyramid, axial_histogram, polish, yaw_candidates
+from cadreg.localize.bbs import SCALE, GridPyramid, axial_histogram, polish, turned_histogram, yaw_candidates
 from cadreg.localize.score import DistanceField
 
 
@@ -170,6 +170,27 @@ def test_yaw_candidates_contain_the_true_yaw_of_a_manhattan_view() -> None:
     assert len(yaws) < 60 and np.min(np.abs((yaws - 47.0 + 180) % 360 - 180)) <= 3.0
     # Too few vertical surfaces to say: every yaw.
     assert len(yaw_candidates(frame[:10], hist, step_deg=3.0)) == 120
+
+
+def test_a_copy_turned_by_an_odd_angle_adds_its_directions_and_a_quarter_turn_none() -> None:
+    """`turned_histogram`: a room's wall directions, and its copies' turns. Quarter turns leave the histogram as it
+    is (bit for bit); a copy turned by 30° adds its own walls, so that the yaws searched for a view of it (the frame
+    turned by 30° plus the camera's yaw) are among `yaw_candidates`, which the room's own histogram leaves out."""
+    rng = np.random.default_rng(4)
+    walls = np.vstack([np.tile([1.0, 0, 0], (400, 1)), np.tile([0, 1.0, 0], (200, 1))]) + rng.normal(0, 0.02, (600, 3))
+    hist = axial_histogram(walls)
+    quarter = np.radians([0.0, 90.0, 180.0, 270.0, -90.0])
+    assert np.array_equal(turned_histogram(hist, quarter), hist)
+    both = turned_histogram(hist, np.radians([0.0, 90.0, 30.0, 120.0]))
+    assert both.sum() == pytest.approx(1.0)
+    assert both[15] > 0.3 * both.max() and hist[15] < 0.01 * hist.max()  # the walls at 30° (bins of 2°)
+    turn = lambda deg: np.array([[np.cos(np.radians(deg)), -np.sin(np.radians(deg)), 0],  # noqa: E731
+                                 [np.sin(np.radians(deg)), np.cos(np.radians(deg)), 0], [0, 0, 1]])
+    copy_walls = walls[:300] @ turn(30.0).T  # the copy's walls, map frame
+    frame = copy_walls @ turn(47.0)  # seen by a camera at yaw 47° in the map
+    near = lambda yaws: np.min(np.abs((np.degrees(yaws) - 47.0 + 180) % 360 - 180))  # noqa: E731
+    assert near(yaw_candidates(frame, hist, step_deg=3.0)) > 6.0
+    assert near(yaw_candidates(frame, both, step_deg=3.0)) <= 3.0
 
 
 @pytest.mark.realdata

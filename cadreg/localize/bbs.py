@@ -338,6 +338,18 @@ def map_direction_histogram(normals_level: np.ndarray, *, sample: int = 50000, s
     return axial_histogram(horizontal)
 
 
+def turned_histogram(hist: np.ndarray, yaws_rad: np.ndarray) -> np.ndarray:
+    """An `axial_histogram` of a room's directions made one of all its copies: the mean of it turned by each of the
+    copies' yaws (radians, the copy's turn from the room) that differ modulo a quarter turn, to the nearest bin.
+    A room's walls face the same directions after a quarter turn: copies so turned (a building's grid) leave the
+    histogram as it is, while a copy turned by an odd angle (a wing at 30°) adds its own directions, which the
+    yaws searched for its views must come from."""
+    bins = len(hist)
+    shifts = np.unique(np.rint(np.degrees(np.asarray(yaws_rad, dtype=np.float64)) / (180.0 / bins)).astype(np.int64)
+                       % (bins // 2))
+    return np.mean([np.roll(hist, int(s)) for s in shifts], axis=0) if len(shifts) else hist
+
+
 def polish(field: DistanceField, points_camera: np.ndarray, hyp: Hypotheses, up: np.ndarray, *, step_m: float = 0.05,
            step_deg: float = 1.5, rounds: int = 2, tau_m: float = 0.1, later_within: float | None = None) -> Hypotheses:
     """Each hypothesis moved to the best of its neighbours on the exact distance field: yaw ± step_deg and each

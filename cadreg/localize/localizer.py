@@ -33,7 +33,7 @@ from ..site.bundle import Site
 from ..site.regions import Region
 from .cluster import cluster_objects
 from .color_gicp import rgb_to_lab
-from .bbs import GridPyramid, map_direction_histogram
+from .bbs import GridPyramid, map_direction_histogram, turned_histogram
 from .building_views import SAME_PLACE_DEPTH_MARGIN, BuildingViews
 from . import cluster, field_kernels, gravity, grid_gicp, match, point_tree, view_kernels
 from . import points as frame_points
@@ -240,16 +240,22 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         Its largest region alone need not share its rooms' directions: a corridor segment's walls face across it
         only, and in a 30-room building with corridors, views without labels of its rooms' other walls had every yaw
         the search tried 74-79° from their own (5 of the 14 repeated views whose truth no hypothesis held). Every
-        turned copy of a room would blur them instead: a building of copies of one room keeps its largest room's."""
+        turned copy of a room would blur them instead: a building of copies of one room keeps its largest room's,
+        turned by each copy's turn that is no quarter turn (`bbs.turned_histogram`): ten copies each turned by
+        another odd angle, without labels, had 4 of 57 unique views without an answer or `ok` 6 cm off."""
         regions, hists = self.maps.regions, []
         for k in self.twins.one_of_each():
-            largest = max([regions[k]] + [regions[b] for b, _ in self.twins.of(k)], key=lambda r: r.points)
+            members = [(k, np.eye(4))] + self.twins.of(k)
+            b, T_b_k = max(members, key=lambda m: regions[m[0]].points)
+            largest = regions[b]
             hist = map_direction_histogram(region_cloud(self.site, largest, "both").normals.astype(np.float64)
                                            @ R_level_map.T)
             self.site.release("map", slice(*largest.map_range))
             self.site.release("raw", slice(*largest.raw_range))
             if hist is not None:
-                hists.append(hist)
+                # each member's turn from the largest, about up (level frame)
+                turns = [R_level_map @ T[:3, :3] @ T_b_k[:3, :3].T @ R_level_map.T for _, T in members]
+                hists.append(turned_histogram(hist, np.array([np.arctan2(R[1, 0], R[0, 0]) for R in turns])))
         return np.mean(hists, axis=0) if hists else None
 
     def fpfh(self) -> FpfhRansac:
