@@ -76,6 +76,43 @@ def test_layout_is_deterministic_and_drops_at_the_given_rate() -> None:
     assert all(not r.drop_objects for r in none.rooms)
 
 
+def test_layout_with_any_turn_turns_rooms_by_odd_angles_and_keeps_their_boxes_apart() -> None:
+    """`any_turn`: each room turned by an angle drawn in [0°, 360°); the boxes about the turned footprints keep the
+    grid's gaps (so the rooms themselves are at least that far apart), and the same seed gives the same layout."""
+    gap = 0.6
+    source = _source()
+    config = LayoutConfig(site_id="at10", rooms=10, gap_m=gap, seed=1, any_turn=True)
+    layout = generate_layout([source], config)
+    assert layout == generate_layout([source], config)
+    turns = [math.degrees(math.atan2(r.T_building_room[1][0], r.T_building_room[0][0])) for r in layout.rooms]
+    assert sum(abs((t + 45.0) % 90.0 - 45.0) > 1.0 for t in turns) >= 8  # not quarter turns
+    boxes = []
+    for r in layout.rooms:
+        T = np.asarray(r.T_building_room)
+        assert np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3)) and T[2, 2] == 1.0  # a turn about z
+        box = placed_footprint(source, T)
+        c, s = abs(T[0, 0]), abs(T[1, 0])
+        assert np.allclose(box[1] - box[0], [c * source.size[0] + s * source.size[1],
+                                             s * source.size[0] + c * source.size[1]])
+        boxes.append(box)
+    for a, b in itertools.combinations(boxes, 2):
+        assert np.maximum(b[0] - a[1], a[0] - b[1]).max() >= gap - 1e-9
+
+
+def test_layout_turned_as_a_whole_is_the_same_building_turned() -> None:
+    """`building_turn_deg`: every room's placement is the unturned layout's turned about z through the origin; the
+    drops are the same."""
+    config = LayoutConfig(site_id="b10", rooms=10, seed=1)
+    plain = generate_layout([_source()], config)
+    turned = generate_layout([_source()], config.model_copy(update={"building_turn_deg": 30.0}))
+    R = make_T(np.array([[math.cos(math.radians(30)), -math.sin(math.radians(30)), 0],
+                         [math.sin(math.radians(30)), math.cos(math.radians(30)), 0], [0, 0, 1]]))
+    for a, b in zip(plain.rooms, turned.rooms):
+        assert np.allclose(np.asarray(b.T_building_room), R @ np.asarray(a.T_building_room))
+        assert a.drop_objects == b.drop_objects
+    assert generate_layout([_source()], config.model_copy(update={"building_turn_deg": 0.0})) == plain
+
+
 def test_layout_on_storeys_raises_each_storeys_grid_and_keeps_the_seeds_turns_and_drops() -> None:
     """--storeys: the first ⌈N / storeys⌉ rooms on the ground storey, and so on, each storey laid out on the grid
     its rooms alone would take and raised by a storey's height; the corridors of each storey with it, named by it."""

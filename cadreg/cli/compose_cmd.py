@@ -51,7 +51,8 @@ def _layout(args: argparse.Namespace) -> int:
         config = LayoutConfig(site_id=args.site_id, rooms=args.rooms, gap_m=args.gap_m, drop_prob=args.drop_prob,
                               move_prob=args.move_prob, move_max_m=args.move_max_m, move_max_deg=args.move_max_deg,
                               corridor_m=args.corridor_m, corridor_height_m=args.corridor_height_m,
-                              storeys=args.storeys, storey_height_m=args.storey_height_m, seed=args.seed)
+                              storeys=args.storeys, storey_height_m=args.storey_height_m,
+                              any_turn=args.any_turn, building_turn_deg=args.building_turn_deg, seed=args.seed)
     except ValueError as exc:
         raise ConfigError(str(exc)) from exc
     names = [name for name, _ in args.room]
@@ -92,8 +93,9 @@ def register_site_compose(site_sub: argparse._SubParsersAction) -> None:
                     "about z by a random multiple of 90 degrees about its footprint centre, footprints --gap-m "
                     "apart, each CAD object dropped with probability --drop-prob, each one kept moved (turned and "
                     "shifted inside the room) with probability --move-prob; with --corridor-m, plain corridors "
-                    "between pairs of rows; with --storeys, one such grid a storey, each above the one below. "
-                    "Deterministic per --seed.",
+                    "between pairs of rows; with --storeys, one such grid a storey, each above the one below; "
+                    "with --any-turn, each room turned by a random angle instead; with --building-turn-deg, the "
+                    "whole building turned. Deterministic per --seed.",
     )
     g.add_argument("--room", action="append", required=True, type=_room_arg, metavar="NAME=BUNDLE_DIR",
                    help="a room bundle to copy (repeatable)")
@@ -110,6 +112,10 @@ def register_site_compose(site_sub: argparse._SubParsersAction) -> None:
     g.add_argument("--storeys", type=int, default=1,
                    help="storeys the rooms are shared among, each on its own grid above the one below (default 1)")
     g.add_argument("--storey-height-m", type=float, default=3.0, help="floor-to-floor height of a storey, metres")
+    g.add_argument("--any-turn", action="store_true",
+                   help="turn each room by a random angle, not by a multiple of 90 degrees")
+    g.add_argument("--building-turn-deg", type=float, default=0.0,
+                   help="turn the whole building about z by this, degrees (default 0)")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--site-id", required=True, help="site id of the building")
     g.add_argument("--out", required=True, type=Path, help="layout JSON to write (bundle paths relative to it)")

@@ -3,8 +3,8 @@
 Rooms r000, r001, ... fill a near-square grid (ceil(sqrt(N)) columns, row by row). Room k is a copy of source
 bundle k mod len(sources) (cycled, so every source appears as evenly as the count allows), levelled (a bundle that
 states an up other than +z, a fused room, is turned so that its up is +z), turned about z by a random multiple of
-90° about the centre of its footprint (the xy box of the bundle's levelled raw points), and placed so that, after
-turning:
+90° (with `any_turn`, by a random angle) about the centre of its footprint (the xy box of the bundle's levelled raw
+points), and placed so that, after turning (a footprint turned by another angle counts by the box about it):
 
 - within a row, each room's footprint starts exactly `gap_m` after its left neighbour's ends (x);
 - each row's band (the tallest footprint of the row) starts exactly `gap_m` after the band of the row below (y);
@@ -14,7 +14,7 @@ Footprints therefore never overlap and are at least `gap_m` apart. Each CAD-sour
 "cad") of each copy is dropped with probability `drop_prob`, and each one a copy keeps is moved with probability
 `move_prob`: turned about the vertical through its box centre by up to `move_max_deg` and shifted horizontally by
 up to `move_max_m`, redrawn (at most MOVE_TRIES times, else left) until its box stays inside the room's footprint.
-One seeded generator draws, per room in order, the quarter turn and then the drops (CAD node ids in sorted order),
+One seeded generator draws, per room in order, the turn and then the drops (CAD node ids in sorted order),
 then, for every room in order again, the moves: the same seed gives the same layout, and the same turns and drops
 whatever `move_prob`.
 
@@ -75,6 +75,10 @@ class LayoutConfig(BaseModel):
     storeys: int = Field(1, ge=1, le=100, description="storeys the rooms are shared among, each laid out on its "
                          "own grid above the one below")
     storey_height_m: float = Field(3.0, ge=2.0, le=20, description="floor-to-floor height of a storey, metres")
+    any_turn: bool = Field(False, description="turn each room by an angle drawn in [0°, 360°), not by a multiple of "
+                           "90°: rooms that do not share their walls' directions")
+    building_turn_deg: float = Field(0.0, ge=-360, le=360, description="turn the whole building about z (through "
+                                     "the origin) by this, degrees: a building whose walls are not along x and y")
     seed: int = Field(0, ge=0)
 
 
@@ -143,16 +147,22 @@ def quarter_turn(k: int) -> np.ndarray:
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float64)
 
 
-def turned_size(source: RoomSource, quarter_turns: int) -> np.ndarray:
-    """(2,) footprint size after turning: width and depth swap on odd quarter turns."""
-    return source.size[::-1].copy() if quarter_turns % 2 else source.size.copy()
+def turn_about_z(rad: float) -> np.ndarray:
+    """(3, 3) rotation about z by `rad` radians."""
+    c, s = math.cos(rad), math.sin(rad)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float64)
 
 
-def place_room(source: RoomSource, quarter_turns: int, corner_xy: np.ndarray) -> np.ndarray:
-    """(4, 4) T_building_room levelling the room (its up onto +z), turning it by `quarter_turns`·90° about its
-    footprint centre and putting the turned footprint's min corner at `corner_xy` (building frame, metres)."""
-    R = quarter_turn(quarter_turns)
-    half = turned_size(source, quarter_turns) / 2.0
+def turned_size(source: RoomSource, R: np.ndarray) -> np.ndarray:
+    """(2,) size of the box about the footprint turned by R ((3, 3) about z): width and depth swap, exactly, on odd
+    quarter turns."""
+    return np.abs(R[:2, :2]) @ source.size
+
+
+def place_room(source: RoomSource, R: np.ndarray, corner_xy: np.ndarray) -> np.ndarray:
+    """(4, 4) T_building_room levelling the room (its up onto +z), turning it by R ((3, 3) about z) about its
+    footprint centre and putting the turned footprint's box's min corner at `corner_xy` (building frame, metres)."""
+    half = turned_size(source, R) / 2.0
     T = np.eye(4)
     T[:3, :3] = R
     # p_building = R (p_level - c) + corner + half: the footprint centre c lands on the turned box's centre.
@@ -169,11 +179,13 @@ def placed_footprint(source: RoomSource, T_building_room: np.ndarray) -> np.ndar
     return np.stack([xy.min(axis=0), xy.max(axis=0)])
 
 
-def draw_room(source: RoomSource, rng: np.random.Generator, drop_prob: float) -> tuple[int, list[str]]:
-    """(quarter turns, dropped CAD node ids) of one copy, drawn in that order from `rng`."""
-    turns = int(rng.integers(4))
+def draw_room(source: RoomSource, rng: np.random.Generator, drop_prob: float,
+              any_turn: bool = False) -> tuple[np.ndarray, list[str]]:
+    """(turn (3, 3) about z, dropped CAD node ids) of one copy, drawn in that order from `rng`: a quarter turn, or
+    with `any_turn` an angle in [0, 2π)."""
+    R = turn_about_z(float(rng.uniform(0.0, 2.0 * math.pi))) if any_turn else quarter_turn(int(rng.integers(4)))
     draws = rng.random(len(source.cad_ids))
-    return turns, [nid for nid, u in zip(source.cad_ids, draws) if u < drop_prob]
+    return R, [nid for nid, u in zip(source.cad_ids, draws) if u < drop_prob]
 
 
 def draw_moves(source: RoomSource, kept: list[str], rng: np.random.Generator,
@@ -251,17 +263,17 @@ def grid_corridors(sources: list[RoomSource], sizes: list[np.ndarray], corners: 
 def generate_layout(sources: list[RoomSource], config: LayoutConfig) -> Layout:
     """The layout of `config.rooms` copies of `sources` (cycled) on a grid, or on one grid a storey (the first
     ⌈rooms / storeys⌉ rooms on the ground storey, and so on, each storey raised by storey_height_m; seen from above,
-    its rooms overlap those of the storey below); deterministic per `config.seed` (the turns, drops and moves are
-    those of the layout on one storey)."""
+    its rooms overlap those of the storey below), the whole turned by building_turn_deg; deterministic per
+    `config.seed` (the turns, drops and moves are those of the layout on one storey)."""
     if not sources:
         raise ConfigError("a layout needs at least one room bundle")
     rng = np.random.default_rng(config.seed)
     picked = [sources[k % len(sources)] for k in range(config.rooms)]
-    draws = [draw_room(s, rng, config.drop_prob) for s in picked]
+    draws = [draw_room(s, rng, config.drop_prob, config.any_turn) for s in picked]
     # after every room's turn and drops: the same seed turns and drops the same whatever move_prob
     moves = [draw_moves(s, [i for i in s.cad_ids if i not in dropped], rng, config)
              for s, (_, dropped) in zip(picked, draws)]
-    sizes = [turned_size(s, turns) for s, (turns, _) in zip(picked, draws)]
+    sizes = [turned_size(s, R) for s, (R, _) in zip(picked, draws)]
     corridor_gap = config.corridor_m + 2.0 * CORRIDOR_WALL_M if config.corridor_m > 0 else None
     per_storey = math.ceil(config.rooms / config.storeys)
     cols, _ = grid_shape(per_storey)
@@ -271,10 +283,12 @@ def generate_layout(sources: list[RoomSource], config: LayoutConfig) -> Layout:
         corners = grid_corners([sizes[k] for k in members], cols, config.gap_m, corridor_gap)
         raise_T = np.eye(4)
         raise_T[2, 3] = storey * config.storey_height_m
+        if config.building_turn_deg:
+            raise_T[:3, :3] = turn_about_z(math.radians(config.building_turn_deg))
         for k, corner in zip(members, corners):
-            (turns, dropped), s = draws[k], picked[k]
+            (R, dropped), s = draws[k], picked[k]
             rooms.append(RoomEntry(name=f"r{k:03d}", bundle=s.bundle,
-                                   T_building_room=(raise_T @ place_room(s, turns, corner)).tolist(),
+                                   T_building_room=(raise_T @ place_room(s, R, corner)).tolist(),
                                    drop_objects=dropped, move_objects=moves[k]))
         if corridor_gap is not None:
             for c in grid_corridors([picked[k] for k in members], [sizes[k] for k in members], corners, cols, config):
