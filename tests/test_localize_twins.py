@@ -762,3 +762,38 @@ def test_a_view_from_a_robots_height_is_not_held_back_by_the_one_room_depth_gate
     assert LocalizeConfig().regions.min_depth_agreement <= depth < MatchConfig().min_depth_agreement
     strict = Localizer.from_site(site, LocalizeConfig(regions=RegionConfig(min_depth_agreement=0.75)))
     assert strict.localize(frame).status == Status.UNCERTAIN
+
+
+@pytest.mark.realdata
+def test_a_buildings_wall_directions_hold_its_copies_turned_by_odd_angles(scene0470_site_dir: Path,
+                                                                        tmp_path: Path) -> None:
+    """`Localizer._building_wall_directions`: room "b" is room "a" turned by 30° (a copy the twins find), room "c"
+    by a quarter turn. The building's histogram is room "a"'s own and the same turned by 30°, half each (the quarter
+    turn adds nothing): the label-free search then tries the yaws of views in "b", which "a"'s alone left out."""
+    import json
+
+    from cadreg.localize.bbs import map_direction_histogram
+    from cadreg.localize.regions import region_cloud
+    from cadreg.site.compose import compose_site, read_layout
+
+    def placed(deg: float, dx: float) -> list:
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("z", deg, degrees=True).as_matrix()
+        T[0, 3] = dx
+        return T.tolist()
+
+    layout = tmp_path / "layout.json"
+    layout.write_text(json.dumps({"site_id": "turned-rooms", "rooms": [
+        {"name": "a", "bundle": str(scene0470_site_dir), "T_building_room": placed(0.0, 0.0)},
+        {"name": "b", "bundle": str(scene0470_site_dir), "T_building_room": placed(30.0, 8.0)},
+        {"name": "c", "bundle": str(scene0470_site_dir), "T_building_room": placed(90.0, 16.0)},
+    ]}))
+    compose_site(read_layout(layout), tmp_path).save(tmp_path / "site")
+    site = Site.load(tmp_path / "site")
+    loc = Localizer.from_site(site)
+    assert sorted(b for b, _ in loc.twins.of(0)) == [1, 2]
+    R_level = np.eye(3)  # the building is z-up
+    own = map_direction_histogram(region_cloud(site, loc.maps.regions[0], "both").normals.astype(np.float64))
+    walls = loc._building_wall_directions(R_level)
+    assert walls == pytest.approx(0.5 * (own + np.roll(own, 15)), abs=0.01 * own.max())  # 30° = 15 bins of 2°
+    assert walls[15] > 3 * own[15]  # the directions of "b"'s walls, which "a"'s alone barely holds
