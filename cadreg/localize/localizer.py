@@ -241,8 +241,8 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         only, and in a 30-room building with corridors, views without labels of its rooms' other walls had every yaw
         the search tried 74-79° from their own (5 of the 14 repeated views whose truth no hypothesis held). Every
         turned copy of a room would blur them instead: a building of copies of one room keeps its largest room's,
-        turned by each copy's turn that is no quarter turn (`bbs.turned_histogram`): ten copies each turned by
-        another odd angle, without labels, had 4 of 57 unique views without an answer or `ok` 6 cm off."""
+        turned by each copy's turn that is no quarter turn (`bbs.turned_histogram`): ten copies each turned by a
+        random angle and scanned in one piece had 95.0 % of their unique views right without labels, 98.3 % so."""
         regions, hists = self.maps.regions, []
         for k in self.twins.one_of_each():
             members = [(k, np.eye(4))] + self.twins.of(k)
