@@ -154,11 +154,10 @@ def test_a_large_object_seen_in_part_is_placed_by_its_box_not_by_a_sliver_beside
     distances = views._object_distances(scan, np.array(poses))[:, 0]
     assert distances[:3].tolist() == [0.0, 0.0, 0.0] and np.isinf(distances[3])
     assert views._shows_objects(scan, poses[0], poses[1:]).tolist() == [True, True, False]
-    # the boxes' test itself: inside, within the margin, beyond it, another class
-    T_a = np.eye(4)
-    assert graph.in_box_of_class(np.array([[1.15, 0.0, 1.0], [1.25, 0.0, 1.0], [1.35, 0.0, 1.0]]), 0, 0.1).tolist() == [
-        True, True, False]
-    assert not graph.in_box_of_class(T_a[:3, 3][None] + [0, 0, 1.0], 1, 0.1).any()
+    # the boxes' test itself, along room "a"'s board (1.2 m half-width): inside, within the margin, beyond it
+    along = np.array([[1.15, 0.0, 1.0], [1.25, 0.0, 1.0], [1.35, 0.0, 1.0]])
+    assert graph.in_box_of_class(along, 0, 0.1).tolist() == [True, True, False]
+    assert not graph.in_box_of_class(along[:1], 1, 0.1).any()  # in a box of another class only
     # without boxes (a graph made of centres alone) no point is in one
     assert not MapGraph(graph.ids, graph.cls, graph.centroid).in_box_of_class(centre[:1], 0, 0.1).any()
 
