@@ -142,14 +142,17 @@ def grid_shape(n_rooms: int) -> tuple[int, int]:
 
 
 def quarter_turn(k: int) -> np.ndarray:
-    """(3, 3) rotation about z by k·90°, with exact 0 / ±1 entries."""
-    c, s = [(1, 0), (0, 1), (-1, 0), (0, -1)][k % 4]
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float64)
+    """(3, 3) rotation about z by k·90°, with exact 0 / ±1 entries (integers in, so no -0.0 reaches a layout)."""
+    return _about_z(*[(1, 0), (0, 1), (-1, 0), (0, -1)][k % 4])
 
 
 def turn_about_z(rad: float) -> np.ndarray:
     """(3, 3) rotation about z by `rad` radians."""
-    c, s = math.cos(rad), math.sin(rad)
+    return _about_z(math.cos(rad), math.sin(rad))
+
+
+def _about_z(c: float, s: float) -> np.ndarray:
+    """(3, 3) rotation about z with cosine c and sine s."""
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float64)
 
 
