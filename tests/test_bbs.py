@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from cadreg.geometry import pose_errors, rotation_between
-from cadreg.localize.bbs import SCALE, GridPyramid, axial_histogram, polish, turned_histogram, yaw_candidates
+from cadreg.localize.bbs import (SCALE, GridPyramid, YawPlaces, all_yaws, axial_histogram, polish, turned_histogram,
+                                 yaw_candidates)
 from cadreg.localize.score import DistanceField
 
 
@@ -72,6 +73,45 @@ def test_search_recovers_a_synthetic_pose() -> None:
     poses, scores, stats = pyr.search(local, np.radians(np.arange(0, 360, 3.0)), max_nodes=4000)
     assert stats.best > 0.8 and scores[0] == pytest.approx(stats.best)
     assert abs(np.degrees(poses[0, 0]) - 30.0) < 3.1 and np.linalg.norm(poses[0, 1:] - cam) < 0.15
+
+
+def _turn(deg: float) -> np.ndarray:
+    """(3, 3) rotation about z by deg degrees."""
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_places_try_each_rooms_yaws_from_its_own_box_only() -> None:
+    """`YawPlaces`: two copies of a room, the second turned by 30° and 7 m along x, and a view in the second at a
+    yaw of 50°. A root tries the yaws of the places its cube meets (every yaw where it meets none). Where the
+    turned room's place allows the view's yaw, the search finds the view; where only the other room's does, no leaf
+    lies near it (the unturned room, where the same view is at yaw 20°, tries no yaw near that)."""
+    rng = np.random.default_rng(5)
+    a = _room(rng)
+    b = _room(rng) @ _turn(30.0).T + [7.0, 0.0, 0.0]
+    both = np.vstack([a, b])
+    pyr = GridPyramid(DistanceField(both, voxel_m=0.05), both, np.array([0.0, 0.0, 1.0]), voxel_m=0.1, levels=4)
+    cam = _turn(30.0) @ np.array([2.0, 1.0, 1.4]) + [7.0, 0.0, 0.0]
+    seen = both[np.linalg.norm(both - cam, axis=1) < 3.0]
+    local = (seen[rng.choice(len(seen), 200, replace=False)] - cam) @ _turn(50.0)  # camera-level frame
+    yaws = all_yaws(3.0)
+    near = lambda deg: np.abs((np.degrees(yaws) - deg + 180.0) % 360.0 - 180.0) <= 6.0  # noqa: E731
+    boxes = np.array([[a.min(axis=0), a.max(axis=0)], [b.min(axis=0), b.max(axis=0)]])
+    elsewhere = ~near(50.0) & ~near(20.0)  # (the same view in "a" is at yaw 20°)
+
+    right = YawPlaces(boxes, np.stack([elsewhere, near(50.0)]))
+    lo = np.array([[20.0, 20.0, 0.0], [0.5, 0.5, 0.5], [4.2, 0.5, 0.5]])  # far off; inside "a"; between the two
+    tried = right.at(lo, lo + 1.0)
+    assert tried[0].all() and np.array_equal(tried[1], elsewhere) and tried[2].all()
+    poses, scores, stats = pyr.search(local, yaws, max_nodes=4000, places=right)
+    assert stats.best > 0.8
+    assert abs(np.degrees(poses[0, 0]) - 50.0) < 3.1 and np.linalg.norm(poses[0, 1:] - cam) < 0.15
+
+    wrong = YawPlaces(boxes, np.stack([near(50.0), ~near(50.0)]))
+    poses, _, _ = pyr.search(local, yaws, max_nodes=4000, places=wrong)
+    at_truth = (np.linalg.norm(poses[:, 1:] - cam, axis=1) < 0.3) & (
+        np.abs((np.degrees(poses[:, 0]) - 50.0 + 180.0) % 360.0 - 180.0) < 6.0)
+    assert not at_truth.any()
 
 
 def test_nodes_that_tie_at_the_cap_are_cut_evenly_not_in_array_order() -> None:
@@ -205,7 +245,7 @@ def test_search_finds_real_7scenes_frames_before_refinement(redkitchen_sparse_si
 
     site, frames_dir = redkitchen_sparse_site
     loc = Localizer.from_site(site)
-    pyr, hist = loc.pyramid()
+    pyr, hist, _ = loc.pyramid()
     frames = RecordedFrames.open(frames_dir)
     found = 0
     queries = (22, 72, 122, 172)  # not fused (the map has every 5th of 0-199)

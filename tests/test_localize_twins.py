@@ -793,6 +793,10 @@ def test_a_buildings_wall_directions_hold_its_copies_turned_by_odd_angles(scene0
     assert sorted(b for b, _ in loc.twins.of(0)) == [1, 2]
     R_level = np.eye(3)  # the building is z-up
     own = map_direction_histogram(region_cloud(site, loc.maps.regions[0], "both").normals.astype(np.float64))
-    walls = loc._building_wall_directions(R_level)
+    walls, each = loc._building_wall_directions(R_level)
     assert walls == pytest.approx(0.5 * (own + np.roll(own, 15)), abs=0.01 * own.max())  # 30° = 15 bins of 2°
     assert walls[15] > 3 * own[15]  # the directions of "b"'s walls, which "a"'s alone barely holds
+    # Each room's own: "a"'s, "a"'s turned by 30° for "b", and "a"'s again for "c" (a quarter turn).
+    assert each[0] == pytest.approx(own, abs=0.01 * own.max()) and np.array_equal(each[2], each[0])
+    assert np.array_equal(each[1], np.roll(each[0], 15))
+    assert loc.rooms_face_their_own_ways()  # "b" faces its own ways

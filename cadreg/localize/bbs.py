@@ -31,6 +31,8 @@ from .score import DistanceField
 # The score grid is stored as uint8 (0..SCALE): a quarter of float32's memory, and sums of a few hundred points
 # stay exact in int32.
 SCALE = 255
+# A frame needs this many normals of vertical surfaces to say which way it faces (`frame_direction_histogram`).
+MIN_FRAME_NORMALS = 40
 # Seed of the order in which nodes with equal bounds are cut (`highest`, `best_first`): the same frame gives the same
 # answer.
 TIE_SEED = 0
@@ -130,13 +132,14 @@ class GridPyramid:
 
     def search(self, points_level: np.ndarray, yaws_rad: np.ndarray, *, z_range_level: tuple[float, float] | None = None,
                box_level: np.ndarray | None = None, keep_ratio: float = 0.85, max_nodes: int = 1500,
-               dives: int = 4) -> tuple[np.ndarray, np.ndarray, SearchStats]:
+               dives: int = 4, places: "YawPlaces | None" = None) -> tuple[np.ndarray, np.ndarray, SearchStats]:
         """Best leaves of the search (camera positions within `box_level` when given, see `camera_domain`).
 
         points_level : (m, 3) frame points rotated so that the camera's up is +z (camera at the origin).
         yaws_rad : (k,) yaws searched. Leaves scoring at least keep_ratio × the best are returned:
         (poses (l, 4): yaw, x, y, z of the camera in the level frame; scores (l,) in [0, 1]), best first.
         max_nodes : nodes kept per level (the highest bounds); the cap bounds the cost of any frame.
+        places : where each yaw is searched (a building whose rooms face their own directions), None: everywhere.
         """
         stats = SearchStats()
         rng = np.random.default_rng(TIE_SEED)
@@ -159,7 +162,15 @@ class GridPyramid:
         gi, gj, gk = np.meshgrid(*axes, indexing="ij")
         corner = np.stack([gi.ravel(), gj.ravel(), gk.ravel()], axis=1)
         yi = np.repeat(np.arange(len(yaws_rad)), len(corner))
-        corner = np.tile(corner, (len(yaws_rad), 1))
+        if places is not None:
+            # Each root keeps the yaws of the rooms its cube meets; its children lie inside it and keep its yaw.
+            lo_level = self.origin + corner * v
+            allowed = places.at(lo_level, lo_level + span * v).T.ravel()  # yaw-major, as yi
+            yi, corner = yi[allowed], np.tile(corner, (len(yaws_rad), 1))[allowed]
+        else:
+            corner = np.tile(corner, (len(yaws_rad), 1))
+        if len(corner) == 0:
+            return np.zeros((0, 4)), np.zeros(0), stats
 
         offs = np.ascontiguousarray(offs)
         grids = [field_kernels.read_only(g) for g in self.grids]
@@ -281,36 +292,74 @@ def best_first(values: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.lexsort((rng.random(len(values)), -values))
 
 
+def all_yaws(step_deg: float) -> np.ndarray:
+    """Every yaw (radians) of a search at this step: 0, step, ... below 360°."""
+    return np.radians(np.arange(0.0, 360.0, step_deg))
+
+
 def yaw_candidates(frame_normals_level: np.ndarray, map_hist: np.ndarray | None, *, step_deg: float,
-                   min_normals: int = 40, keep_ratio: float = 0.4, spread_deg: float = 6.0) -> np.ndarray:
-    """Yaws (radians) worth searching, from the directions of the frame's vertical surfaces.
+                   min_normals: int = MIN_FRAME_NORMALS) -> np.ndarray:
+    """Yaws (radians) worth searching, from the directions of the frame's vertical surfaces (`yaws_allowed`); all
+    yaws when the frame shows too few vertical surfaces to say, or the map none."""
+    frame_hist = frame_direction_histogram(frame_normals_level, min_normals=min_normals)
+    return all_yaws(step_deg)[yaws_allowed(frame_hist, map_hist, step_deg=step_deg)]
+
+
+def frame_direction_histogram(frame_normals_level: np.ndarray, *,
+                              min_normals: int = MIN_FRAME_NORMALS) -> np.ndarray | None:
+    """The frame's `axial_histogram` of its vertical surfaces' normals (level frame), or None when it shows fewer than
+    min_normals of them: too few to say which way the camera faces."""
+    n = frame_normals_level
+    horizontal = n[np.abs(n[:, 2]) < 0.3]
+    return axial_histogram(horizontal) if len(horizontal) >= min_normals else None
+
+
+def yaws_allowed(frame_hist: np.ndarray | None, map_hist: np.ndarray | None, *, step_deg: float,
+                 keep_ratio: float = 0.4, spread_deg: float = 6.0) -> np.ndarray:
+    """(k,) bool over `all_yaws(step_deg)`: the yaws worth searching for a frame of these wall directions in a map
+    (or a room) of those; all of them when either histogram is None.
 
     Walls, cupboard fronts and furniture sides of the frame face the directions the map's do, turned by the
     camera's yaw: the circular correlation of the two histograms of horizontal normal directions (axial, mod
     180°: normals of a depth frame and of a map may be flipped) peaks at the right yaw (and, in a box-shaped room,
-    every 90°). Yaws near the peaks at least keep_ratio of the highest are kept, both ways round; all yaws when the
-    frame shows too few vertical surfaces to say.
+    every 90°). Yaws near the peaks at least keep_ratio of the highest are kept, both ways round.
     """
-    all_yaws = np.radians(np.arange(0.0, 360.0, step_deg))
-    if map_hist is None:
-        return all_yaws
-    n = frame_normals_level
-    horizontal = n[np.abs(n[:, 2]) < 0.3]
-    if len(horizontal) < min_normals:
-        return all_yaws
-    fh = axial_histogram(horizontal)
+    yaws = all_yaws(step_deg)
+    if frame_hist is None or map_hist is None:
+        return np.ones(len(yaws), dtype=bool)
     bins = len(map_hist)
     # corr[s] = Σ_b fh[b] · m[b + s]: the frame's direction b lies at b + s in the map after a yaw of s bins. m is
     # the square root of the map's histogram: a map dominated by one wall direction must not outvote the true yaw
     # of a frame that sees the other (a kitchen's long counter against its short side walls).
-    corr = np.real(np.fft.ifft(np.conj(np.fft.fft(fh)) * np.fft.fft(np.sqrt(np.maximum(map_hist, 0.0)))))
+    corr = np.real(np.fft.ifft(np.conj(np.fft.fft(frame_hist)) * np.fft.fft(np.sqrt(np.maximum(map_hist, 0.0)))))
     if not np.isfinite(corr).all() or corr.max() <= 0:
-        return all_yaws
+        return np.ones(len(yaws), dtype=bool)
     good = np.flatnonzero(corr >= keep_ratio * corr.max())
     centres = np.concatenate([good, good + bins]) * (180.0 / bins)  # mod 180 -> both ways round
-    yaw_deg = np.degrees(all_yaws)
-    diff = np.abs((yaw_deg[:, None] - centres[None, :] + 180.0) % 360.0 - 180.0)
-    return all_yaws[diff.min(axis=1) <= spread_deg / 2 + step_deg / 2]
+    diff = np.abs((np.degrees(yaws)[:, None] - centres[None, :] + 180.0) % 360.0 - 180.0)
+    return diff.min(axis=1) <= spread_deg / 2 + step_deg / 2
+
+
+@dataclass
+class YawPlaces:
+    """Where each yaw of a search is tried: in a building whose rooms face directions of their own (rooms turned by
+    odd angles), the camera positions near a room try the yaws its own walls give (`yaws_allowed` of its
+    histogram; `FallbackStage._yaws`).
+
+    boxes_level : (b, 2, 3) min and max corners (level frame, metres) of the places (a building's regions).
+    allowed : (b, k) bool, the yaws of the search (its yaws_rad, in order) tried from a place. A root of the search
+    whose cube meets no place tries every yaw."""
+
+    boxes_level: np.ndarray
+    allowed: np.ndarray
+
+    def at(self, lo_level: np.ndarray, hi_level: np.ndarray) -> np.ndarray:
+        """(c, k) bool: the yaws tried from each cube [lo, hi] ((c, 3) corners, level frame)."""
+        meets = np.all((lo_level[:, None, :] <= self.boxes_level[None, :, 1])
+                       & (self.boxes_level[None, :, 0] <= hi_level[:, None, :]), axis=2)  # (c, b)
+        out = (meets.astype(np.int64) @ self.allowed.astype(np.int64)) > 0
+        out[~meets.any(axis=1)] = True
+        return out
 
 
 def axial_histogram(normals_level: np.ndarray, *, bins: int = 90, smooth_bins: float = 1.5) -> np.ndarray:

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..geometry import make_Ts, rotation_between
 from ..site.regions import CAMERA_MARGIN_M, Region
-from .bbs import polish, yaw_candidates
+from .bbs import YawPlaces, all_yaws, frame_direction_histogram, polish, yaws_allowed
 from .fallback import FpfhRansac
 from .gravity import planar_normals
 from .match import Hypotheses, distinct_pairs
@@ -46,6 +46,10 @@ SEES_PAST_THE_MAP_LEAF = 0.88
 # found no better pose for any of them (median 83 -> 134 ms).
 DEEPER_SEARCH_NODES = 4
 THIN_SEARCH_SHARE = 0.5
+# A building's regions whose main wall directions lie further apart than this face their own ways
+# (`rooms_face_their_own_ways`): the spread of the yaws kept about each peak of the frame's directions
+# (`bbs.yaws_allowed`).
+OWN_DIRECTIONS_DEG = 6.0
 # The source of the hypotheses of rooms the label-free search found tied with its best and did not verify.
 BBS_UNVERIFIED = "fallback:bbs:unverified"
 
@@ -114,7 +118,7 @@ class FallbackStage:
         return index.fpfh
 
     def _label_free(self, scan: Scan, notes: list[str], rooms: list[Region], *,
-                    deeper: bool = False) -> Hypotheses | None:
+                    deeper: bool = False, own_yaws: bool = False) -> Hypotheses | None:
         """The label-free search (bbs.py): level the frame by its up, pick the yaws its walls allow, branch and
         bound over (x, y, z, yaw) — over the client's search region, else over `rooms` (a building's candidate
         regions), else over the whole site; the distinct best leaves as hypotheses. None without an up direction.
@@ -126,12 +130,15 @@ class FallbackStage:
         lf, floor = self.config.label_free, scan.floor
         if not lf.enabled or floor is None:
             return None
-        pyr, map_hist = self.pyramid()
+        pyr, map_hist, region_hists = self.pyramid()
         R_up = rotation_between(floor.up_camera, np.array([0.0, 0.0, 1.0]))
         rng = np.random.default_rng(1)
         pick = rng.choice(len(scan.down), min(lf.points, len(scan.down)), replace=False)
         normals = floor.normals if floor.normals is not None else planar_normals(scan.down.xyz, max_points=YAW_NORMAL_POINTS)[1]
-        yaws = yaw_candidates(normals @ R_up.T, map_hist, step_deg=lf.yaw_step_deg)
+        yaws, places = self._yaws(frame_direction_histogram(normals @ R_up.T), map_hist,
+                                  region_hists if own_yaws else None, pyr.R_level_map)
+        if not len(yaws):
+            return None
         labelled_floor = floor.source == "floor" and floor.height_m is not None
         points_level = scan.down.xyz[pick] @ R_up.T
         rc = self.config.regions
@@ -153,7 +160,7 @@ class FallbackStage:
                 z_level = floor_m + floor.height_m  # heights along up are the level frame's z
                 z_range = (z_level - 2 * lf.voxel_m, z_level + 2 * lf.voxel_m)
             found.append(pyr.search(points_level, yaws, z_range_level=z_range, box_level=box,
-                                    keep_ratio=lf.keep_ratio, max_nodes=max_nodes))
+                                    keep_ratio=lf.keep_ratio, max_nodes=max_nodes, places=places))
         poses = np.concatenate([f[0] for f in found])
         scores = np.concatenate([f[1] for f in found])
         order = np.argsort(-scores, kind="stable")
@@ -192,6 +199,46 @@ class FallbackStage:
         notes.append(f"label-free search: {len(yaws)} yaws, {stats.nodes} nodes, best leaf {stats.best:.2f}"
                      + (" (node cap reached)" if stats.capped else ""))
         return hyp if len(hyp) else None
+
+    def rooms_face_their_own_ways(self) -> bool:
+        """In a building, whether its regions' main wall directions (each one's histogram's peak, modulo a quarter
+        turn) lie further apart than OWN_DIRECTIONS_DEG: rooms turned by odd angles. Then the deeper search tries
+        each region's own yaws too (`_yaws`). The quarter-turned benchmark's rooms and corridors peak 4° apart (the
+        scan's walls are not quite square to its frame), and the yaws the site's directions allow hold theirs."""
+        hists = [h for h in (self.pyramid()[2] or []) if h is not None]
+        if len(hists) < 2:
+            return False
+        quarter = len(hists[0]) // 2
+        peaks = np.array([int(np.argmax(h)) % quarter for h in hists])
+        apart = np.abs(peaks[:, None] - peaks[None, :])
+        apart = np.minimum(apart, quarter - apart) * (180.0 / len(hists[0]))
+        return bool(apart.max() > OWN_DIRECTIONS_DEG)
+
+    def _yaws(self, frame_hist: np.ndarray | None, map_hist: np.ndarray | None,
+              region_hists: list[np.ndarray | None] | None,
+              R_level_map: np.ndarray) -> tuple[np.ndarray, YawPlaces | None]:
+        """The yaws the label-free search tries, and where it tries each (None: everywhere).
+
+        Without `region_hists`: the yaws the site's wall directions allow for the frame's, everywhere. With them
+        (the deeper look's second search in a building whose rooms face their own ways, `Localizer._deeper_look`):
+        each region's own yaws that the site's leave out, from the roots whose cube meets its box. A building's
+        directions are the mean of its kinds of region's, and a corridor's one axis rules that mean: in a 30-room
+        building on three storeys whose rooms are turned by odd angles, the yaws it allowed held none within 21°
+        of the true one for 11 of the 19 unique views the search lost without labels; each view's own room's held
+        it for 98.6 % of the views. But a room may face so many directions (scene0470's: low walls, chairs, a round
+        table) that it allows most yaws (86-90 of 120): a first search trying every room's own lost views it had
+        found (the coarse levels' ties cut their branches at the node cap) and answered four in other rooms, `ok`
+        (`docs/buildings-history.md`, thirty-second session). Only a weak answer's deeper look tries them, beside
+        the site's."""
+        step = self.config.label_free.yaw_step_deg
+        whole = yaws_allowed(frame_hist, map_hist, step_deg=step)
+        if region_hists is None:
+            return all_yaws(step)[whole], None
+        allowed = np.array([np.zeros_like(whole) if h is None else yaws_allowed(frame_hist, h, step_deg=step) & ~whole
+                            for h in region_hists])
+        tried = allowed.any(axis=0)
+        boxes = [_level_box(r.bounds[0], r.bounds[1], R_level_map) for r in self.maps.regions]
+        return all_yaws(step)[tried], YawPlaces(np.array(boxes), allowed[:, tried])
 
     def _same_place_alternates(self, hyp: Hypotheses, keep: list[int]) -> list[int]:
         """For each kept leaf (indices into the polished leaves `hyp`), the best other leaf at its place: within the
@@ -255,14 +302,16 @@ class FallbackStage:
             met = sum(bool(np.all(r.bounds[0][:2] <= hi[:2]) and np.all(lo[:2] <= r.bounds[1][:2]))
                       for r in self.maps.regions)
             boxes = [(np.stack([lo, hi]), self._shared_floor(self.maps.regions), max(met, 1))]
-        out = []
-        for (lo, hi), floor_m, covered in boxes:
-            corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-            level = corners @ R_level_map.T
-            out.append((np.stack([level.min(axis=0), level.max(axis=0)]), floor_m, covered))
-        return out
+        return [(_level_box(lo, hi, R_level_map), floor_m, covered) for (lo, hi), floor_m, covered in boxes]
 
     def _shared_floor(self, regions: list[Region]) -> float | None:
         """The floor height along up those regions share (within the label-free search's voxel), else None."""
         floors = np.array([self.region_floor_m[r.id] for r in regions])
         return float(np.median(floors)) if np.ptp(floors) <= self.config.label_free.voxel_m else None
+
+
+def _level_box(lo: np.ndarray, hi: np.ndarray, R_level_map: np.ndarray) -> np.ndarray:
+    """(2, 3) min and max corners, level frame, of the box of the map-frame box [lo, hi] turned into it."""
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    level = corners @ R_level_map.T
+    return np.stack([level.min(axis=0), level.max(axis=0)])

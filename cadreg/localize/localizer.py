@@ -133,7 +133,7 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
                                       for k in self.node_region], dtype=np.float64)
         self._fpfh: FpfhRansac | None = None
         self._whole: RefineMap | None = None
-        self._pyramid: tuple[GridPyramid, np.ndarray | None] | None = None
+        self._pyramid: tuple[GridPyramid, np.ndarray | None, list[np.ndarray | None] | None] | None = None
         self.twins = (RoomTwins(graph, self.node_region, up, len(maps.regions),
                                 floors=np.array([self.region_floor_m[r.id] for r in maps.regions]), field=field,
                                 bounds=np.array([r.bounds for r in maps.regions]),
@@ -217,9 +217,10 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
             self.pyramid()  # (a building's wall directions read the rows: `RoomTwins.one_of_each`)
         return self
 
-    def pyramid(self) -> tuple[GridPyramid, np.ndarray | None]:
-        """The label-free search's grid pyramid of this site and the map's histogram of wall directions (built on
-        first use, or by `warm`: about a second and (levels + 1) bytes a cell, LabelFreeConfig.max_cells at most)."""
+    def pyramid(self) -> tuple[GridPyramid, np.ndarray | None, list[np.ndarray | None] | None]:
+        """The label-free search's grid pyramid of this site, the map's histogram of wall directions, and in a
+        building each region's own (None in one room; built on first use, or by `warm`: about a second and
+        (levels + 1) bytes a cell, LabelFreeConfig.max_cells at most)."""
         if self._pyramid is None:
             lf = self.config.label_free
             surfaces = self.site.cloud("both") if len(self.maps) == 1 else None
@@ -227,15 +228,19 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
             occupied = self.field.surface_points(lf.voxel_m / 2) if surfaces is None else surfaces.points
             pyr = GridPyramid(self.field, occupied, self.up, voxel_m=lf.voxel_m, levels=lf.levels, tau_m=lf.tau_m,
                               reach_m=lf.reach_m, margin_m=lf.camera_margin_m, max_cells=lf.max_cells)
-            walls = (self._building_wall_directions(pyr.R_level_map) if surfaces is None
-                     else map_direction_histogram(surfaces.normals.astype(np.float64) @ pyr.R_level_map.T))
-            self._pyramid = (pyr, walls)
+            if surfaces is None:
+                walls, region_walls = self._building_wall_directions(pyr.R_level_map)
+            else:
+                walls = map_direction_histogram(surfaces.normals.astype(np.float64) @ pyr.R_level_map.T)
+                region_walls = None
+            self._pyramid = (pyr, walls, region_walls)
         return self._pyramid
 
-    def _building_wall_directions(self, R_level_map: np.ndarray) -> np.ndarray | None:
+    def _building_wall_directions(self, R_level_map: np.ndarray) -> tuple[np.ndarray | None, list[np.ndarray | None]]:
         """A building's histogram of wall directions (`bbs.map_direction_histogram`, level frame): the mean of those
         of the largest region of each set of regions that repeat one another (`RoomTwins.one_of_each` and its
-        copies), each region's points read in turn.
+        copies), each region's points read in turn; and each region's own, its set's largest region's turned by
+        its turn from it (None for a region of a set without vertical surfaces to speak of).
 
         Its largest region alone need not share its rooms' directions: a corridor segment's walls face across it
         only, and in a 30-room building with corridors, views without labels of its rooms' other walls had every yaw
@@ -244,6 +249,7 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         turned by each copy's turn that is no quarter turn (`bbs.turned_histogram`): ten copies each turned by a
         random angle and scanned in one piece had 95.0 % of their unique views right without labels, 98.3 % so."""
         regions, hists = self.maps.regions, []
+        own: list[np.ndarray | None] = [None] * len(regions)
         for k in self.twins.one_of_each():
             members = [(k, np.eye(4))] + self.twins.of(k)
             b, T_b_k = max(members, key=lambda m: regions[m[0]].points)
@@ -255,8 +261,12 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
             if hist is not None:
                 # each member's turn from the largest, about up (level frame)
                 turns = [R_level_map @ T[:3, :3] @ T_b_k[:3, :3].T @ R_level_map.T for _, T in members]
-                hists.append(turned_histogram(hist, np.array([np.arctan2(R[1, 0], R[0, 0]) for R in turns])))
-        return np.mean(hists, axis=0) if hists else None
+                yaws = np.array([np.arctan2(R[1, 0], R[0, 0]) for R in turns])
+                hists.append(turned_histogram(hist, yaws))
+                for (m, _), yaw in zip(members, yaws):
+                    if own[m] is None:
+                        own[m] = turned_histogram(hist, yaw[None])
+        return (np.mean(hists, axis=0) if hists else None), own
 
     def fpfh(self) -> FpfhRansac:
         """The FPFH + RANSAC registrar of this site (map features computed on first use)."""
@@ -792,7 +802,10 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         # again, and those it leaves unverified are tied with its own best.
         scan.unverified = [h for h in scan.unverified if h.source != BBS_UNVERIFIED]
         # Over the whole building (or the client's search region): the graph's candidate rooms were searched already.
-        found = self._label_free(scan, diag.notes, [], deeper=True)
+        searches = [self._label_free(scan, diag.notes, [], deeper=True)]
+        if self.rooms_face_their_own_ways():
+            searches.append(self._label_free(scan, diag.notes, [], deeper=True, own_yaws=True))
+        found = _leaves_of(searches)
         if found is None:
             return candidates, choice
         found = self._within_search(found, scan)
@@ -911,6 +924,17 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         if not len(poses) or not len(others):
             return np.ones(len(poses), dtype=bool)
         return self._distinct_pairs(np.asarray(poses), np.asarray(others)).all(axis=1)
+
+
+def _leaves_of(searches: list[Hypotheses | None]) -> Hypotheses | None:
+    """The label-free searches' leaves (`FallbackStage._label_free`) in one set, their scores kept; None when none
+    found any."""
+    parts = [h for h in searches if h is not None and len(h)]
+    if not parts:
+        return None
+    out = Hypotheses.concat(parts)
+    out.geometric = np.concatenate([h.geometric for h in parts])
+    return out
 
 
 def _centroid(xyz: np.ndarray) -> np.ndarray:
