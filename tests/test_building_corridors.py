@@ -366,9 +366,9 @@ def test_the_deeper_search_tries_the_yaws_of_rooms_turned_by_odd_angles(scene047
                                                                        tmp_path: Path) -> None:
     """Six scene0470 rooms each turned by a random angle along a 2.4 m corridor (layout seed 2): the corridor's one
     axis rules the building's wall directions, and the yaws they allow for a label-free view of room r003's
-    chairs (view 22 of `cadreg render --layout ... --n 60 --seed 7`) hold none near its own. The first search
-    answers it weakly; the deeper search of a building whose rooms face their own ways also tries each room's own
-    yaws (`FallbackStage._yaws`) and finds it. Without that second search it is answered 5.4 m off."""
+    chairs (view 22 of `cadreg render --layout ... --n 60 --seed 7`) hold none within 11° of its own. The first
+    search answers it weakly; the deeper search of a building whose rooms face their own ways also tries each
+    room's own yaws (`FallbackStage._yaws`) and finds it. Without that second search it is answered 5.4 m off."""
     from dataclasses import replace
 
     from cadreg import Localizer
