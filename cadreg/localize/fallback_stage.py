@@ -126,7 +126,8 @@ class FallbackStage:
         sets `Scan.deeper_below` to RegionConfig.min_view_agreement, and one kept to the candidates' rooms to
         min_one_object_view_agreement: the graph's best fell short of its bar, so the rooms it names are a guess,
         and an answer found only there has no more to say for its room than one object would. `deeper` searches
-        with DEEPER_SEARCH_NODES times the nodes (`Localizer._deeper_look`)."""
+        with DEEPER_SEARCH_NODES times the nodes (`Localizer._deeper_look`); `own_yaws` tries each region's own yaws
+        that the site's leave out, instead of the site's (`_yaws`; None when there are none)."""
         lf, floor = self.config.label_free, scan.floor
         if not lf.enabled or floor is None:
             return None

@@ -795,8 +795,9 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
     def _deeper_look(self, scan: Scan, candidates: list[Candidate], choice: Choice, method: str,
                      diag: Diagnostics) -> tuple[list[Candidate], Choice]:
         """The label-free search run again (`_weak_after_a_cut_search`) over the whole building, or the client's
-        search region, with DEEPER_SEARCH_NODES times the nodes: its leaves not among the candidates join them, and
-        the refine stage runs again over them all (the weak answer among them: it may still win)."""
+        search region, with DEEPER_SEARCH_NODES times the nodes (and, where the rooms face their own ways, a second
+        such search over each room's own yaws, `FallbackStage._yaws`): its leaves not among the candidates join them,
+        and the refine stage runs again over them all (the weak answer among them: it may still win)."""
         scan.deeper_below = 0.0
         # The rooms the cut search left unverified were tied with its weak best; the deeper search ranks the rooms
         # again, and those it leaves unverified are tied with its own best.
