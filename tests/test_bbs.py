@@ -12,6 +12,7 @@ from cadreg.geometry import pose_errors, rotation_between
 from cadreg.localize.bbs import (SCALE, GridPyramid, YawPlaces, all_yaws, axial_histogram, polish, turned_histogram,
                                  yaw_candidates)
 from cadreg.localize.score import DistanceField
+from cadreg.site.layout import turn_about_z
 
 
 @functools.lru_cache(maxsize=1)
@@ -77,8 +78,7 @@ def test_search_recovers_a_synthetic_pose() -> None:
 
 def _turn(deg: float) -> np.ndarray:
     """(3, 3) rotation about z by deg degrees."""
-    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return turn_about_z(np.radians(deg))
 
 
 def test_places_try_each_rooms_yaws_from_its_own_box_only() -> None:
@@ -224,10 +224,8 @@ def test_a_copy_turned_by_an_odd_angle_adds_its_directions_and_a_quarter_turn_no
     both = turned_histogram(hist, np.radians([0.0, 90.0, 30.0, 120.0]))
     assert both.sum() == pytest.approx(1.0)
     assert both[15] > 0.3 * both.max() and hist[15] < 0.01 * hist.max()  # the walls at 30° (bins of 2°)
-    turn = lambda deg: np.array([[np.cos(np.radians(deg)), -np.sin(np.radians(deg)), 0],  # noqa: E731
-                                 [np.sin(np.radians(deg)), np.cos(np.radians(deg)), 0], [0, 0, 1]])
-    copy_walls = walls[:300] @ turn(30.0).T  # the copy's walls, map frame
-    frame = copy_walls @ turn(47.0)  # seen by a camera at yaw 47° in the map
+    copy_walls = walls[:300] @ _turn(30.0).T  # the copy's walls, map frame
+    frame = copy_walls @ _turn(47.0)  # seen by a camera at yaw 47° in the map
     near = lambda yaws: np.min(np.abs((np.degrees(yaws) - 47.0 + 180) % 360 - 180))  # noqa: E731
     assert near(yaw_candidates(frame, hist, step_deg=3.0)) > 6.0
     assert near(yaw_candidates(frame, both, step_deg=3.0)) <= 3.0
