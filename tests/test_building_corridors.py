@@ -62,6 +62,29 @@ def test_layout_corridors_run_between_pairs_of_rows_against_every_room() -> None
         [np.asarray(r.T_building_room)[:3, :3].tolist() for r in without.rooms]
 
 
+def test_layout_storeys_stand_above_every_floor_of_the_storey_below() -> None:
+    """Rooms keep their own floors; each storey rises by the storey height plus their spread, so that no floor of a
+    storey lies less than a storey over one of the storey below, and the building's storeys are told apart
+    (`regions.Storeys`). Raised by the storey height alone, an office whose floor lies 1.19 m under its neighbours'
+    had the upper storey's lowest floor 1.81 m over the lower's highest: the four floors counted as one storey."""
+    from cadreg.site.regions import Region, Storeys
+
+    sources = [_source("a", floor_z=0.06), _source("office", floor_z=-1.13)]
+    config = LayoutConfig(site_id="s8", rooms=8, seed=4, storeys=2, storey_height_m=3.0)
+    layout = generate_layout(sources, config)
+    floors = np.array([np.asarray(r.T_building_room)[2, 3] + sources[k % 2].floor_z
+                       for k, r in enumerate(layout.rooms)])
+    lower, upper = floors[:4], floors[4:]
+    assert upper.min() - lower.max() == pytest.approx(3.0)
+    np.testing.assert_allclose(np.sort(upper) - np.sort(lower), 3.0 + 1.19)
+    regions = [Region(f"r{k}", np.array([[0.0, 0.0, f], [3.5, 2.9, f + 2.5]]), (), (0, 0), (0, 0), float(f))
+               for k, f in enumerate(floors)]
+    assert Storeys.of(regions).region.tolist() == [0] * 4 + [1] * 4
+    # rooms sharing one floor rise by the storey height alone
+    alike = generate_layout([_source("a"), _source("b", size=(4.0, 2.5))], config)
+    assert [np.asarray(r.T_building_room)[2, 3] for r in alike.rooms] == [0.0] * 4 + [3.0] * 4
+
+
 def test_layout_refuses_a_room_and_a_corridor_of_one_name() -> None:
     room = RoomEntry(name="c00", bundle="rooms/a", T_building_room=np.eye(4).tolist())
     with pytest.raises(ValueError, match="room and corridor names must be distinct"):

@@ -169,8 +169,8 @@ def test_a_room_with_too_few_objects_has_no_copies() -> None:
 
 
 def test_rooms_without_objects_are_copies_when_their_shapes_are() -> None:
-    # Three rooms of bare surfaces: an L-shaped room of a floor, walls and a shelf; its copy turned a quarter turn
-    # and shifted; a room of the same box whose shelf stands elsewhere (no copy).
+    # Four rooms of bare surfaces: an L-shaped room of a floor, walls and a shelf; its copy turned a quarter turn
+    # and shifted; a room of the same box whose shelf stands elsewhere (no copy); a copy turned by 37 degrees.
     from cadreg.localize.score import DistanceField
 
     rng = np.random.default_rng(5)
@@ -183,31 +183,34 @@ def test_rooms_without_objects_are_copies_when_their_shapes_are() -> None:
         shelf = np.column_stack([shelf_x + 0.8 * u[5000:, 0], 2.0 + np.zeros(1000), 1.2 * u[5000:, 1]])
         return np.concatenate([floor, wall_x, wall_y, shelf])
 
+    def turned(deg: float, shift: list[float]) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("z", deg, degrees=True).as_matrix()
+        T[:3, 3] = shift
+        return T
+
     a = room(0.5)
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
-    T[:3, 3] = [10.0, 1.0, 0.0]
-    b = a @ T[:3, :3].T + T[:3, 3]
-    c = room(2.7) + [0.0, 8.0, 0.0]
-    clouds = [a, b, c]
-    bounds = np.array([[p.min(axis=0), p.max(axis=0)] for p in clouds])
+    T_quarter, T_odd = turned(90, [10.0, 1.0, 0.0]), turned(37, [2.0, 14.0, 0.0])
+    clouds = [a, a @ T_quarter[:3, :3].T + T_quarter[:3, 3], room(2.7) + [0.0, 8.0, 0.0],
+              a @ T_odd[:3, :3].T + T_odd[:3, 3]]
     field = DistanceField(np.concatenate(clouds), voxel_m=0.03)
-    graph, region = _graph([(np.zeros((0, 3)), np.zeros(0, dtype=np.int64))] * 3)
+    graph, region = _graph([(np.zeros((0, 3)), np.zeros(0, dtype=np.int64))] * 4)
     read: list[int] = []
 
     def sample(k: int) -> np.ndarray:
         read.append(k)
         return clouds[k][::5]
 
-    twins = RoomTwins(graph, region, np.array([0.0, 0.0, 1.0]), 3, field=field, bounds=bounds, sample=sample)
-    (found,) = twins.of(0)
-    assert found[0] == 1
-    t_err, r_err = pose_errors(found[1], T)
-    assert t_err < 0.05 and r_err < 0.5
+    twins = RoomTwins(graph, region, np.array([0.0, 0.0, 1.0]), 4, field=field, sample=sample)
+    found = dict(twins.of(0))
+    assert sorted(found) == [1, 3]
+    for b, T in [(1, T_quarter), (3, T_odd)]:  # a room turned by any angle, not only by quarter turns
+        t_err, r_err = pose_errors(found[b], T)
+        assert t_err < 0.05 and r_err < 0.5
     assert [b for b, _ in twins.of(2)] == []  # the same box, its shelf elsewhere: no copy
-    assert sorted(read) == [0, 2]  # each room's points read once, whatever it is tried against
+    assert sorted(read) == [0, 1, 2, 3]  # each room's points read once, whatever it is tried against
     # without the field (a graph's objects only), bare rooms have no copies
-    assert RoomTwins(graph, region, np.array([0.0, 0.0, 1.0]), 3).of(0) == []
+    assert RoomTwins(graph, region, np.array([0.0, 0.0, 1.0]), 4).of(0) == []
 
 
 @pytest.mark.realdata

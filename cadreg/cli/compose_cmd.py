@@ -111,7 +111,8 @@ def register_site_compose(site_sub: argparse._SubParsersAction) -> None:
     g.add_argument("--corridor-height-m", type=float, default=2.5, help="height of the corridors' walls, metres")
     g.add_argument("--storeys", type=int, default=1,
                    help="storeys the rooms are shared among, each on its own grid above the one below (default 1)")
-    g.add_argument("--storey-height-m", type=float, default=3.0, help="floor-to-floor height of a storey, metres")
+    g.add_argument("--storey-height-m", type=float, default=3.0,
+                   help="floor-to-floor height of a storey, metres (plus the spread of the rooms' own floors)")
     g.add_argument("--any-turn", action="store_true",
                    help="turn each room by a random angle, not by a multiple of 90 degrees")
     g.add_argument("--building-turn-deg", type=float, default=0.0,

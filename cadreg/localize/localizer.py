@@ -136,7 +136,6 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         self._pyramid: tuple[GridPyramid, np.ndarray | None, list[np.ndarray | None] | None] | None = None
         self.twins = (RoomTwins(graph, self.node_region, up, len(maps.regions),
                                 floors=np.array([self.region_floor_m[r.id] for r in maps.regions]), field=field,
-                                bounds=np.array([r.bounds for r in maps.regions]),
                                 sample=lambda k: _region_sample(maps.site, maps.regions[k], SHAPE_POINTS))
                       if len(maps) > 1 else None)
         # A building's first look at its graph hypotheses reads a coarse copy of the field (`_hypotheses`).

@@ -20,6 +20,7 @@ from typing import Callable
 
 import numpy as np
 from numba import njit
+from scipy.spatial import ConvexHull, QhullError
 
 from ..geometry import rotation_between
 from .match import MapGraph
@@ -38,11 +39,13 @@ PAIR_TOLERANCE_M = 0.15
 MIN_SHARED = 3
 MIN_SHARED_SHARE = 0.4
 # Rooms with fewer objects than that (a scan without labels or CAD models: a composed Replica office) are copies
-# when their boxes agree, one turned by a quarter turn about up, within BOX_TOLERANCE_M along each axis, and a
-# sample of the first room's own points, so turned and shifted, lies on the building's surfaces
-# (`score.score_poses` at least SHAPE_MIN_SCORE): a repeated room of bare walls is as repeatable as one with
-# furniture (two copies of Replica office0 in a 4-room building had a view answered `ok` in the wrong one, 5.6 m
-# off, confidence 0.94). Quarter turns: repeated rooms of a building share its wall directions.
+# when their boxes agree, each taken along its own walls (the least-area rectangle about its points seen from
+# above), one turned by a quarter turn of the other's, within BOX_TOLERANCE_M along each axis, and a sample of the
+# first room's own points, so turned and shifted, lies on the building's surfaces (`score.score_poses` at least
+# SHAPE_MIN_SCORE): a repeated room of bare walls is as repeatable as one with furniture (two copies of Replica
+# office0 in a 4-room building had a view answered `ok` in the wrong one, 5.6 m off, confidence 0.94). Along its own
+# walls, not the map's axes: in a building whose rooms are turned by any angle, six copies of office0 taken along
+# the map's axes were no copies, and 22 of the 60 views they repeat were answered without the true room.
 BOX_TOLERANCE_M = 0.1
 SHAPE_POINTS = 2000
 SHAPE_MIN_SCORE = 0.9
@@ -60,13 +63,13 @@ class RoomTwins:
     up or down (FLOOR_STEP_M), repeat a room with that shift along up (a room straight above its copy).
     `of(a)` : [(b, T_b_a)] with T_b_a (4, 4) moving region a's content onto region b's (map frame), made on first
     use, or by `warm`, and kept (a row of a 100-room building costs a few milliseconds).
-    For rooms with too few objects to match (`shape`): field, the building's distance field; bounds (r, 2, 3) each
-    region's box (map frame); sample(r) -> (m, 3) points of region r's own (map frame), read on first use.
+    For rooms with too few objects to match (`shape`): field, the building's distance field; sample(r) -> (m, 3)
+    points of region r's own (map frame), read on first use.
     """
 
     def __init__(self, graph: MapGraph, node_region: np.ndarray, up: np.ndarray, regions: int, *,
                  floors: np.ndarray | None = None, field: DistanceField | None = None,
-                 bounds: np.ndarray | None = None, sample: Callable[[int], np.ndarray] | None = None) -> None:
+                 sample: Callable[[int], np.ndarray] | None = None) -> None:
         R_level = rotation_between(np.asarray(up, dtype=np.float64), np.array([0.0, 0.0, 1.0]))
         self._R_level = R_level  # map -> level frame (z along up)
         self._level = graph.centroid @ R_level.T
@@ -78,10 +81,11 @@ class RoomTwins:
             self._rows[r, :len(n)] = n
         self._found: dict[int, list[tuple[int, np.ndarray]]] = {}
         self._floors = np.full(regions, np.nan) if floors is None else np.asarray(floors, dtype=np.float64)
-        # Boxes are the map's axes: quarter turns about up are turns about z only where up is z (a composed building).
+        # Shapes are compared seen from above along z: only where up is z (a composed building).
         z_up = bool(np.dot(up, [0.0, 0.0, 1.0]) > 1.0 - 1e-6)
-        self._field, self._bounds, self._sample = (field, bounds, sample) if z_up else (None, None, None)
+        self._field, self._sample = (field, sample) if z_up else (None, None)
         self._samples: dict[int, np.ndarray] = {}  # each region's sample, read once for all the rooms it is tried on
+        self._boxes: dict[int, _WallBox | None] = {}  # and its box along its own walls
 
     def of(self, a: int) -> list[tuple[int, np.ndarray]]:
         if a not in self._found:
@@ -150,29 +154,38 @@ class RoomTwins:
         return rise if np.isfinite(rise) and abs(rise) >= FLOOR_STEP_M else 0.0
 
     def _shape_transform(self, a: int, b: int) -> np.ndarray | None:
-        """T (4, 4, map frame): region a's box turned by a quarter turn about its centre (z) onto region b's box
-        (within BOX_TOLERANCE_M an axis), the turn under which a's own points lie best on the building's surfaces,
-        if they do (SHAPE_MIN_SCORE); else None."""
-        (lo_a, hi_a), (lo_b, hi_b) = self._bounds[a], self._bounds[b]
-        size_a, size_b = hi_a - lo_a, hi_b - lo_b
-        turns = [k for k in range(4) if np.all(np.abs(size_a[[k % 2, 1 - k % 2, 2]] - size_b) <= BOX_TOLERANCE_M)]
-        if not turns:
+        """T (4, 4, map frame): region a's box along its own walls turned about z onto region b's (within
+        BOX_TOLERANCE_M an axis, by one of the four turns that lay a's walls on b's), a's centroid onto b's, the turn
+        under which a's own points lie best on the building's surfaces, if they do (SHAPE_MIN_SCORE); else None."""
+        box_a, box_b = self._wall_box(a), self._wall_box(b)
+        if box_a is None or box_b is None:
             return None
-        centre_a, centre_b = 0.5 * (lo_a + hi_a), 0.5 * (lo_b + hi_b)
         poses = []
-        for k in turns:
+        for k in range(4):
+            if np.any(np.abs(box_a.size[[k % 2, 1 - k % 2, 2]] - box_b.size) > BOX_TOLERANCE_M):
+                continue
+            yaw = box_b.yaw - box_a.yaw + k * np.pi / 2
             T = np.eye(4)
-            c, s = round(np.cos(k * np.pi / 2)), round(np.sin(k * np.pi / 2))
-            T[:2, :2] = [[c, -s], [s, c]]
-            T[:2, 3] = centre_b[:2] - T[:2, :2] @ centre_a[:2]
+            T[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+            T[:2, 3] = box_b.centroid[:2] - T[:2, :2] @ box_a.centroid[:2]
             T[2, 3] = self._rise(a, b)  # (z is up here)
             poses.append(T)
+        if not poses:
+            return None
         poses = np.array(poses)
-        if a not in self._samples:
-            self._samples[a] = self._sample(a)
-        scores = score_poses(self._field, self._samples[a], poses[:, :3, :3], poses[:, :3, 3])
+        scores = score_poses(self._field, self._sample_of(a), poses[:, :3, :3], poses[:, :3, 3])
         best = int(np.argmax(scores))
         return poses[best] if scores[best] >= SHAPE_MIN_SCORE else None
+
+    def _sample_of(self, r: int) -> np.ndarray:
+        if r not in self._samples:
+            self._samples[r] = self._sample(r)
+        return self._samples[r]
+
+    def _wall_box(self, r: int) -> "_WallBox | None":
+        if r not in self._boxes:
+            self._boxes[r] = _WallBox.of(self._sample_of(r))
+        return self._boxes[r]
 
     def _transform(self, na: np.ndarray, nb: np.ndarray, rise: float) -> np.ndarray | None:
         """T (4, 4, map frame) taking the objects `na` onto the objects `nb` (at least MIN_SHARED each, `_pair`),
@@ -189,6 +202,34 @@ class RoomTwins:
         L = np.eye(4)
         L[:3, :3] = self._R_level
         return L.T @ T_level @ L  # level frame -> map frame
+
+
+class _WallBox:
+    """A room's points seen from above (z up), in the box along its own walls: the least-area rectangle about them.
+
+    yaw : the turn about z (radians, in [0, π/2)) of the rectangle's first side from the map's x axis; size : (3,)
+    its sides along that side, across it, and the points' spread in z; centroid : (3,) the points' mean (map frame).
+    The least-area rectangle has a side on an edge of the points' convex hull (Freeman and Shapira 1975), so each
+    edge's direction is tried (written here: scipy gives the hull, and no library at hand the rectangle).
+    """
+
+    def __init__(self, yaw: float, size: np.ndarray, centroid: np.ndarray) -> None:
+        self.yaw, self.size, self.centroid = yaw, size, centroid
+
+    @classmethod
+    def of(cls, xyz: np.ndarray) -> "_WallBox | None":
+        """The box of (m, 3) points, or None when they cover no area seen from above."""
+        try:
+            flat = xyz[ConvexHull(xyz[:, :2]).vertices, :2]
+        except (QhullError, ValueError):  # fewer than three points, or all on one line
+            return None
+        edges = np.roll(flat, -1, axis=0) - flat
+        yaws = np.arctan2(edges[:, 1], edges[:, 0]) % (np.pi / 2)
+        along = flat @ np.stack([np.cos(yaws), np.sin(yaws)])  # (v, e): each hull vertex along each edge's direction
+        across = flat @ np.stack([-np.sin(yaws), np.cos(yaws)])
+        best = int(np.argmin(np.ptp(along, axis=0) * np.ptp(across, axis=0)))
+        size = np.array([np.ptp(along[:, best]), np.ptp(across[:, best]), np.ptp(xyz[:, 2])])
+        return cls(float(yaws[best]), size, xyz.mean(axis=0))
 
 
 def warm() -> None:

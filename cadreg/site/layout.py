@@ -19,8 +19,10 @@ then, for every room in order again, the moves: the same seed gives the same lay
 whatever `move_prob`.
 
 With `storeys` > 1 the rooms are shared among that many storeys, the first ⌈N / storeys⌉ on the ground storey and
-so on, each storey laid out as above on its own grid (of ⌈N / storeys⌉ rooms) and raised by `storey_height_m`: seen
-from above, its rooms overlap those of the storey below (a room turned as the one under it stands straight above it).
+so on, each storey laid out as above on its own grid (of ⌈N / storeys⌉ rooms) and raised by `storey_height_m` plus
+the spread of the sources' floor heights (each room keeps its own floor, and every floor of a storey then lies at
+least `storey_height_m` above every floor of the storey below): seen from above, its rooms overlap those of the
+storey below (a room turned as the one under it stands straight above it).
 
 With `corridor_m` > 0 the rows pair up about corridors instead (`compose.CorridorEntry`, cadreg/site/corridor.py):
 corridor c<k> runs along x between rows 2k and 2k + 1, its clear width `corridor_m` between walls CORRIDOR_WALL_M
@@ -74,7 +76,8 @@ class LayoutConfig(BaseModel):
     corridor_height_m: float = Field(2.5, gt=0, le=10, description="height of the corridors' walls, metres")
     storeys: int = Field(1, ge=1, le=100, description="storeys the rooms are shared among, each laid out on its "
                          "own grid above the one below")
-    storey_height_m: float = Field(3.0, ge=2.0, le=20, description="floor-to-floor height of a storey, metres")
+    storey_height_m: float = Field(3.0, ge=2.0, le=20, description="floor-to-floor height of a storey, metres "
+                                   "(plus the spread of the rooms' own floor heights)")
     any_turn: bool = Field(False, description="turn each room by an angle drawn in [0°, 360°), not by a multiple of "
                            "90°: rooms that do not share their walls' directions")
     building_turn_deg: float = Field(0.0, ge=-360, le=360, description="turn the whole building about z (through "
@@ -265,9 +268,10 @@ def grid_corridors(sources: list[RoomSource], sizes: list[np.ndarray], corners: 
 
 def generate_layout(sources: list[RoomSource], config: LayoutConfig) -> Layout:
     """The layout of `config.rooms` copies of `sources` (cycled) on a grid, or on one grid a storey (the first
-    ⌈rooms / storeys⌉ rooms on the ground storey, and so on, each storey raised by storey_height_m; seen from above,
-    its rooms overlap those of the storey below), the whole turned by building_turn_deg; deterministic per
-    `config.seed` (the turns, drops and moves are those of the layout on one storey)."""
+    ⌈rooms / storeys⌉ rooms on the ground storey, and so on, each storey raised by storey_height_m and the spread of
+    the rooms' floors; seen from above, its rooms overlap those of the storey below), the whole turned by
+    building_turn_deg; deterministic per `config.seed` (the turns, drops and moves are those of the layout on one
+    storey)."""
     if not sources:
         raise ConfigError("a layout needs at least one room bundle")
     rng = np.random.default_rng(config.seed)
@@ -280,12 +284,17 @@ def generate_layout(sources: list[RoomSource], config: LayoutConfig) -> Layout:
     corridor_gap = config.corridor_m + 2.0 * CORRIDOR_WALL_M if config.corridor_m > 0 else None
     per_storey = math.ceil(config.rooms / config.storeys)
     cols, _ = grid_shape(per_storey)
+    # Rooms keep their floors (a Replica office's lies 1.19 m under scene0470's): raised by the storey height alone,
+    # a storey's lowest floor lay under the storey below's camera heights, and its rooms counted as one storey with
+    # those below (`regions.Storeys`: floors 1.19, 1.81 and 1.19 m apart, each a step).
+    floors = [s.floor_z for s in picked]
+    storey_rise = config.storey_height_m + max(floors) - min(floors)
     rooms, corridors = [], []
     for storey, first in enumerate(range(0, config.rooms, per_storey)):
         members = range(first, min(first + per_storey, config.rooms))
         corners = grid_corners([sizes[k] for k in members], cols, config.gap_m, corridor_gap)
         raise_T = np.eye(4)
-        raise_T[2, 3] = storey * config.storey_height_m
+        raise_T[2, 3] = storey * storey_rise
         if config.building_turn_deg:
             raise_T[:3, :3] = turn_about_z(math.radians(config.building_turn_deg))
         for k, corner in zip(members, corners):
