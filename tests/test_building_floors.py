@@ -80,3 +80,34 @@ def test_a_room_stating_another_up_is_levelled_by_the_layout_and_refused_unlevel
                                                                        T_building_room=np.eye(4).tolist())])
     with pytest.raises(ConfigError, match="level it with its T_building_room"):
         compose_site(unlevelled, tmp_path)
+
+
+@pytest.mark.realdata
+def test_views_are_drawn_level_in_a_room_whose_own_frame_is_not(scene0470_dir: Path, tmp_path: Path) -> None:
+    """A fused room's frame is its first camera's and its `T_building_room` levels it: its views are drawn on its
+    mesh turned level (`render.building._RoomSamplers`), standing at a camera's height over its floor, looking
+    down a little, as in a room whose frame is level. Drawn on the mesh as it stands, with z across the floor, no
+    position passed the sampler's height checks and the render stopped."""
+    import dataclasses
+
+    from scipy.spatial.transform import Rotation
+
+    from cadreg.config import RenderConfig
+    from cadreg.geometry import make_T
+    from cadreg.render.building import BuildingRoom, render_building_views
+    from conftest import scene0470_mesh
+
+    level = scene0470_mesh(scene0470_dir)
+    T_room_level = make_T(Rotation.from_euler("x", 90, degrees=True).as_matrix(), [0.0, 0.0, 0.0])
+    tilted = dataclasses.replace(level, vertices=level.vertices @ T_room_level[:3, :3].T)  # z no longer up
+    T_b = make_T(Rotation.from_euler("z", 30, degrees=True).as_matrix(), [6.0, 0.0, 0.0]) @ np.linalg.inv(T_room_level)
+    rooms = [BuildingRoom("a", "level", np.eye(4), level), BuildingRoom("t", "tilted", T_b, tilted)]
+    config = RenderConfig()
+    views = render_building_views(rooms, tmp_path / "frames", 12, seed=3, config=config)
+    floor = level.floor_height_m()
+    assert {v.room for v in views} == {"a", "t"}
+    for v in views:
+        T = v.T_building_camera
+        assert config.height_min_m - 0.01 <= T[2, 3] - floor <= config.height_max_m + 0.01
+        pitch_down = np.degrees(np.arcsin(-T[2, 2]))  # the optical axis below the horizon
+        assert config.pitch_min_deg - 0.5 <= pitch_down <= config.pitch_max_deg + 0.5

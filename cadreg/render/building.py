@@ -4,8 +4,8 @@ The building mesh is each room's labelled mesh copied into the building frame by
 faces of the room's dropped objects removed: a face goes when one of its vertices lies inside a dropped node's
 oriented box grown by `compose.DROP_MARGIN_M` (the room bundle's node boxes, room frame) and is of the node's class
 (the floor and the wall under and behind it stay); the rule compose applies to the map's points. Views are drawn as
-follows: a room uniformly (seeded), a camera pose in it by `PoseSampler` on the room's own mesh (room frame, the
-room's drops removed), then `T_building_camera = T_building_room · T_room_camera` rendered on the whole building
+follows: a room uniformly (seeded), a camera pose in it by `PoseSampler` on the room's own mesh (room frame,
+turned level where that frame is not, the room's drops removed), then `T_building_camera = T_building_room · T_room_camera` rendered on the whole building
 mesh (a neighbouring room can show over a low wall or through a gap) with the usual noise, and judged by
 RenderConfig's valid-depth and visible-object thresholds.
 
@@ -36,6 +36,7 @@ figure (`cadreg.bench`: a plain hallway shows nothing that places a view in it).
 
 from __future__ import annotations
 
+import dataclasses
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -48,7 +49,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from ..camera import CameraIntrinsics
 from ..config import NoiseConfig, RenderConfig
 from ..errors import ConfigError, InvalidFrame
-from ..geometry import transform_points
+from ..geometry import make_T, rotation_between, transform_points
 from ..io.frames import FramesWriter
 from ..labels import nyu40_label_map
 from ..site.compose import CorridorEntry, Layout, copy_changes, inside_boxes
@@ -312,15 +313,28 @@ class BuildingView:
 
 class _RoomSamplers:
     """PoseSamplers on room meshes, built when first needed; the last few are kept (a renderer per room of a large
-    building would hold every room's ray-casting structure)."""
+    building would hold every room's ray-casting structure). A room whose own frame is not level (a fused room: its
+    frame is its first camera's, and its `T_building_room` levels it) is sampled on its mesh turned level, as
+    `PoseSampler` takes z for up: `sample(room, rng)` gives T_room_camera either way."""
 
     def __init__(self, rooms: list[BuildingRoom], config: RenderConfig, keep: int = 8) -> None:
         self.rooms, self.config, self.keep = rooms, config, keep
-        self._cache: OrderedDict[int, PoseSampler] = OrderedDict()
+        self._cache: OrderedDict[int, tuple[PoseSampler, np.ndarray]] = OrderedDict()
 
-    def __getitem__(self, room: int) -> PoseSampler:
+    def sample(self, room: int, rng: np.random.Generator) -> np.ndarray | None:
+        """A T_room_camera drawn by the room's sampler (`PoseSampler.sample`), or None when it found no position."""
+        sampler, T_room_level = self._sampler(room)
+        T_level_camera = sampler.sample(rng)
+        return None if T_level_camera is None else T_room_level @ T_level_camera
+
+    def _sampler(self, room: int) -> tuple[PoseSampler, np.ndarray]:
         if room not in self._cache:
-            self._cache[room] = PoseSampler(MeshRenderer(self.rooms[room].mesh), self.config)
+            entry = self.rooms[room]
+            R_level = rotation_between(entry.T_building_room[:3, :3].T @ [0.0, 0.0, 1.0], np.array([0.0, 0.0, 1.0]))
+            mesh = entry.mesh
+            if not np.allclose(R_level, np.eye(3), atol=1e-9):
+                mesh = dataclasses.replace(mesh, vertices=mesh.vertices @ R_level.T)
+            self._cache[room] = (PoseSampler(MeshRenderer(mesh), self.config), make_T(R_level.T, np.zeros(3)))
             while len(self._cache) > self.keep:
                 self._cache.popitem(last=False)
         self._cache.move_to_end(room)
@@ -356,7 +370,7 @@ def render_building_views(
     while len(out) < n:
         i = len(out)
         room = int(rng.integers(len(rooms)))
-        T_room_camera, frame = _draw_view(rooms[room], samplers[room], renderer, rng, config, noise, i)
+        T_room_camera, frame = _draw_view(samplers, room, renderer, rng, config, noise, i)
         T_building_camera = rooms[room].T_building_room @ T_room_camera
         writer.write(i, frame, T_building_camera)
         agreement = repeat.agreements(room, T_room_camera)
@@ -368,16 +382,17 @@ def render_building_views(
     return out
 
 
-def _draw_view(room: BuildingRoom, sampler: PoseSampler, renderer: MeshRenderer, rng: np.random.Generator,
+def _draw_view(samplers: _RoomSamplers, room_index: int, renderer: MeshRenderer, rng: np.random.Generator,
                config: RenderConfig, noise: NoiseConfig | None, index: int):
-    """(T_room_camera, Frame) of the first sampled pose in `room` whose building view passes the config's
-    valid-depth and visible-object thresholds; ConfigError after `max_attempts_per_frame` failures."""
+    """(T_room_camera, Frame) of the first pose sampled in room `room_index` whose building view passes the
+    config's valid-depth and visible-object thresholds; ConfigError after `max_attempts_per_frame` failures."""
+    room = samplers.rooms[room_index]
     depth_intr, color_intr, T_color_depth = camera_rig(config)  # cheap: a few dataclasses
     min_objects = 0 if room.corridor else config.min_visible_objects  # a corridor holds none
     min_z = noise.min_depth_m if noise is not None else 0.0
     max_z = noise.max_depth_m if noise is not None else np.inf
     for _ in range(config.max_attempts_per_frame):
-        T_room_camera = sampler.sample(rng)
+        T_room_camera = samplers.sample(room_index, rng)
         if T_room_camera is None:
             raise ConfigError(f"no camera position inside room {room.name!r} passes the height/clearance checks")
         T_building_camera = room.T_building_room @ T_room_camera
