@@ -4,10 +4,10 @@ The building mesh is each room's labelled mesh copied into the building frame by
 faces of the room's dropped objects removed: a face goes when one of its vertices lies inside a dropped node's
 oriented box grown by `compose.DROP_MARGIN_M` (the room bundle's node boxes, room frame) and is of the node's class
 (the floor and the wall under and behind it stay); the rule compose applies to the map's points. Views are drawn as
-follows: a room uniformly (seeded), a camera pose in it by `PoseSampler` on the room's own mesh (room frame,
-turned level where that frame is not, the room's drops removed), then `T_building_camera = T_building_room · T_room_camera` rendered on the whole building
-mesh (a neighbouring room can show over a low wall or through a gap) with the usual noise, and judged by
-RenderConfig's valid-depth and visible-object thresholds.
+follows: a room uniformly (seeded), a camera pose in it by `PoseSampler` on the room's own mesh (room frame, turned
+level where that frame is not, the room's drops removed), then `T_building_camera = T_building_room · T_room_camera`
+rendered on the whole building mesh (a neighbouring room can show over a low wall or through a gap) with the usual
+noise, and judged by RenderConfig's valid-depth and visible-object thresholds.
 
 **Oracle.** A view of room i is *repeated* in room j (j ≠ i, made from the same bundle) when the building rendered
 at `T_building_room_j · T_room_camera` shows the same depth and labels as at `T_building_room_i · T_room_camera`:
