@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from cadreg.geometry import pose_errors, rotation_between
-from cadreg.localize.bbs import (SCALE, GridPyramid, YawPlaces, all_yaws, axial_histogram, polish, turned_histogram,
-                                 yaw_candidates)
+from cadreg.localize.bbs import (SCALE, GridPyramid, YawPlaces, all_yaws, axial_histogram, frame_direction_histogram,
+                                 polish, turned_histogram, yaws_allowed)
 from cadreg.localize.score import DistanceField
 from cadreg.site.layout import turn_about_z
 
@@ -198,6 +198,12 @@ def test_highest_keeps_the_highest_values_and_a_random_choice_of_the_tied() -> N
     assert sorted(order.tolist()) == list(range(len(values))) and np.all(np.diff(values[order]) <= 0)
 
 
+def yaw_candidates(frame_normals_level: np.ndarray, map_hist: np.ndarray) -> np.ndarray:
+    """The yaws (radians, 3° steps) the label-free search tries for a frame of these normals (level frame) in a map
+    of this histogram of wall directions, as `FallbackStage._yaws` picks them."""
+    return all_yaws(3.0)[yaws_allowed(frame_direction_histogram(frame_normals_level), map_hist, step_deg=3.0)]
+
+
 def test_yaw_candidates_contain_the_true_yaw_of_a_manhattan_view() -> None:
     rng = np.random.default_rng(2)
     map_normals = np.vstack([np.tile([1.0, 0, 0], (400, 1)), np.tile([0, 1.0, 0], (200, 1))])
@@ -206,10 +212,10 @@ def test_yaw_candidates_contain_the_true_yaw_of_a_manhattan_view() -> None:
     yaw = np.radians(47.0)
     R = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
     frame = map_normals[:300] @ R  # the map's directions seen by a camera turned by `yaw`: R.T @ n
-    yaws = np.degrees(yaw_candidates(frame, hist, step_deg=3.0))
+    yaws = np.degrees(yaw_candidates(frame, hist))
     assert len(yaws) < 60 and np.min(np.abs((yaws - 47.0 + 180) % 360 - 180)) <= 3.0
     # Too few vertical surfaces to say: every yaw.
-    assert len(yaw_candidates(frame[:10], hist, step_deg=3.0)) == 120
+    assert len(yaw_candidates(frame[:10], hist)) == 120
 
 
 def test_a_copy_turned_by_an_odd_angle_adds_its_directions_and_a_quarter_turn_none() -> None:
@@ -227,8 +233,8 @@ def test_a_copy_turned_by_an_odd_angle_adds_its_directions_and_a_quarter_turn_no
     copy_walls = walls[:300] @ _turn(30.0).T  # the copy's walls, map frame
     frame = copy_walls @ _turn(47.0)  # seen by a camera at yaw 47° in the map
     near = lambda yaws: np.min(np.abs((np.degrees(yaws) - 47.0 + 180) % 360 - 180))  # noqa: E731
-    assert near(yaw_candidates(frame, hist, step_deg=3.0)) > 6.0
-    assert near(yaw_candidates(frame, both, step_deg=3.0)) <= 3.0
+    assert near(yaw_candidates(frame, hist)) > 6.0
+    assert near(yaw_candidates(frame, both)) <= 3.0
 
 
 @pytest.mark.realdata
@@ -253,7 +259,7 @@ def test_search_finds_real_7scenes_frames_before_refinement(redkitchen_sparse_si
         scan = loc._scan(replace(frame, labels=None), diag, StageTimer(diag.stage_ms))
         R_up = rotation_between(scan.floor.up_camera, np.array([0.0, 0.0, 1.0]))
         pick = np.random.default_rng(0).choice(len(scan.down), 160, replace=False)
-        yaws = yaw_candidates(planar_normals(scan.down.xyz, max_points=1000)[1] @ R_up.T, hist, step_deg=3.0)
+        yaws = yaw_candidates(planar_normals(scan.down.xyz, max_points=1000)[1] @ R_up.T, hist)
         poses, scores, _ = pyr.search(scan.down.xyz[pick] @ R_up.T, yaws)
         hyp = pyr.hypotheses(poses, scores, R_up, count=5, min_translation_m=0.3, min_rotation_deg=15.0)
         hyp = polish(loc.field, scan.score_xyz, hyp, loc.up)

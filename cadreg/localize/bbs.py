@@ -297,14 +297,6 @@ def all_yaws(step_deg: float) -> np.ndarray:
     return np.radians(np.arange(0.0, 360.0, step_deg))
 
 
-def yaw_candidates(frame_normals_level: np.ndarray, map_hist: np.ndarray | None, *, step_deg: float,
-                   min_normals: int = MIN_FRAME_NORMALS) -> np.ndarray:
-    """Yaws (radians) worth searching, from the directions of the frame's vertical surfaces (`yaws_allowed`); all
-    yaws when the frame shows too few vertical surfaces to say, or the map none."""
-    frame_hist = frame_direction_histogram(frame_normals_level, min_normals=min_normals)
-    return all_yaws(step_deg)[yaws_allowed(frame_hist, map_hist, step_deg=step_deg)]
-
-
 def frame_direction_histogram(frame_normals_level: np.ndarray, *,
                               min_normals: int = MIN_FRAME_NORMALS) -> np.ndarray | None:
     """The frame's `axial_histogram` of its vertical surfaces' normals (level frame), or None when it shows fewer than
