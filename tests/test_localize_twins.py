@@ -803,3 +803,47 @@ def test_a_buildings_wall_directions_hold_its_copies_turned_by_odd_angles(scene0
     assert each[0] == pytest.approx(own, abs=0.01 * own.max()) and np.array_equal(each[2], each[0])
     assert np.array_equal(each[1], np.roll(each[0], 15))
     assert loc.rooms_face_their_own_ways()  # "b" faces its own ways
+
+
+@pytest.mark.realdata
+def test_a_pose_that_looks_like_the_one_a_tie_break_put_first_stands_as_its_rival(
+        twin_rooms_dir: Path, twin_shared_view, scene0470_dir: Path, tmp_path: Path) -> None:
+    """`Localizer._rank_building`: a tie-break tells the pose it puts first only from the poses that looked like
+    the answer it replaces. Answered 40 cm ahead of the view's pose (view agreement 0.85), with the view's pose a
+    rival (0.835, as rendered) and the same view in the copy room refined too (0.81: beyond the ambiguity margin of
+    the answer, within that of the view's pose), the depth puts the view's pose first; the copy, never told from
+    it, stands as its rival. A view only room "a" shows (its chair and bin), answered the same way, is told."""
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.localize.refine_stage import RefineRun
+    from cadreg.localize.stages import StageTimer
+    from cadreg.result import Diagnostics
+    from tracking_rooms import render_turn
+
+    loc, shared_scan, T_shared, to_b = _shared_view_scan(twin_rooms_dir, twin_shared_view)
+
+    def rank(scan, T_a: np.ndarray, others: list[Refined]):
+        ahead = T_a.copy()
+        ahead[:3, 3] += 0.4 * T_a[:3, 2]
+        entries = [_refined_entry(ahead, 0.85), _refined_entry(T_a, 0.835)] + others
+        candidates, refined, diag = [e.candidate for e in entries], list(entries), Diagnostics()
+        run = RefineRun(scan, "small_gicp", diag, candidates[:1], None, scan.down, scan.down, len(scan.down),
+                        scan.center_camera, Renders())
+        has_rival, margin, rivals = loc._rank_building(
+            run, refined, candidates, lambda c: next(e for e in entries if e.candidate is c))
+        return refined, has_rival, margin, rivals, diag.notes
+
+    in_b = to_b @ T_shared
+    assert shared_scan.view.agreement(shared_scan.view.render(loc.field, T_shared))[0] == pytest.approx(0.835, abs=0.005)
+    assert 0.85 - 0.81 >= loc._view_margin(0.85) and 0.835 - 0.81 < loc._view_margin(0.835)
+    refined, has_rival, margin, rivals, notes = rank(shared_scan, T_shared, [_refined_entry(in_b, 0.81)])
+    assert refined[0].T_map_camera is T_shared  # put first by the depth along the rays
+    assert any("the depth along the frame's rays" in n for n in notes)
+    assert has_rival and margin < loc.config.match.ambiguity_margin
+    assert any(pose_errors(c.T_map_camera, in_b)[0] < 1e-9 for c in rivals)
+    assert any("were not told from it: 1" in n for n in notes)
+    frames = render_turn(scene0470_dir / "scene0470_00_vh_clean_2.ply",
+                         scene0470_dir / "scene0470_00_vh_clean_2.labels.ply", tmp_path / "turn", n=2)
+    chair_view, T_chair = RecordedFrames.open(frames).load(1)
+    diag = Diagnostics(site_id="s", bundle_version="v")
+    refined, has_rival, margin, rivals, notes = rank(loc._scan(chair_view, diag, StageTimer(diag.stage_ms)), T_chair, [])
+    assert refined[0].T_map_camera is T_chair and not has_rival and rivals == []

@@ -489,6 +489,15 @@ class BuildingViews:
         candidates.extend(standing)
         return standing
 
+    def _unexamined_rivals(self, scan: Scan, looked: list[Refined], renders: Renders, candidates: list[Candidate],
+                           compared: list[np.ndarray]) -> list[Candidate]:
+        """The rivals of the answer (looked[0], which a tie-break has just put first; `_view_rivals` over `looked`,
+        the refined contenders and the copies of the view) distinct from every pose of `compared` (the poses the
+        tie-break told apart)."""
+        _, _, alike = self._view_rivals(looked, renders, candidates, scan)
+        apart = self._distinct_from_all([c.T_map_camera for c in alike], compared)
+        return [c for c, keep in zip(alike, apart) if keep]
+
     def _render_of(self, scan: Scan, renders: Renders, outcome: RefineOutcome) -> np.ndarray:
         """The map's depth along the frame's rays at an outcome's pose, rendered and kept when it has none yet: an
         outcome `refine` left as it was (a pose the frame sees through) has none, whether it stays a rival or a

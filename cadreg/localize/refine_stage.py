@@ -258,17 +258,25 @@ class RefineStage:
                           + (f"; {len(rivals)} distinct poses look the same along the frame's rays" if rivals else ""))
         if rivals:
             before = refined[0].candidate
+            compared = [refined[0].T_map_camera] + [c.T_map_camera for c in rivals]
             told = ((bool(scan.clusters) and self._told_by_objects(scan, refined, rivals, refine, candidates, diag))
                     or self._told_by_depth(scan, refined, rivals, refine, candidates, renders, refined + twins, diag))
             if told and refined[0].candidate is not before:
-                # The objects (or the depth) put a rival first: the copies of its view were never looked at (the
-                # twin check ran from the pose it replaced). A copy that shows the frame as well stands as its
-                # rival. (A 100-room view repeated in four rooms was answered `ok` in one of them this way.)
-                twins = self._promoted_twins(scan, refined, center_camera, candidates, renders)
-                if twins:
+                # The objects (or the depth) put a rival first, and told it only from the poses that looked like
+                # the answer it replaced. A pose that looks like the new answer, but not like the old (within the
+                # new answer's lower view margin), was never told from it; nor were the copies of its view (the twin
+                # check ran from the pose it replaced). Either stands as its rival. (A 100-room view repeated in
+                # four rooms was answered `ok` in one of its copies; a real RedKitchen frame in a building holding
+                # two copies of the fused kitchen was answered `ok` in the copy it was not taken in, its true room's
+                # pose 0.013 behind, its depth agreement lowered by the next rooms seen through the map's holes.)
+                unexamined = self._unexamined_rivals(scan, refined + twins, renders, candidates, compared)
+                copies = self._promoted_twins(scan, refined, center_camera, candidates, renders)
+                if unexamined or copies:
                     told = False
-                    rivals = rivals + twins
-                    diag.notes.append(f"{len(twins)} copies of the pose put first show the frame as well")
+                    rivals = rivals + unexamined + copies
+                    diag.notes.append(f"poses that look like the pose put first and were not told from it: "
+                                      f"{len(unexamined)}, and copies of its view that show the frame as well: "
+                                      f"{len(copies)}")
             if told:
                 # The frame's objects, or its depth, rule the other poses out: no rival stands, whatever the view
                 # margin.
