@@ -215,3 +215,44 @@ def test_the_neighbourhoods_scatter_is_numpys() -> None:
     _, nn = cKDTree(xyz).query(xyz[:600], k=24)
     gathered = xyz[nn] - xyz[nn].mean(axis=1, keepdims=True)
     assert np.array_equal(_scatter(xyz, nn), np.einsum("nki,nkj->nij", gathered, gathered))
+
+
+def test_up_from_a_far_view_is_taken_from_the_frames_own_points_when_its_grid_says_nothing() -> None:
+    """A view 5 m deep (Kinect-like noise, σ about 4 cm there) over a small table top 1 m ahead (3-8 % of the
+    pixels): on the 3 cm voxel grid the far walls' noise fills several voxels in depth per pixel's worth of wall,
+    one point kept in each, so a sample of the grid holds few of the table's flat neighbourhoods and the walls'
+    are flat nowhere: no up. The frame's own points (`dense_xyz`), one a pixel, give it."""
+    from cadreg.localize.points import voxel_indices
+    from cadreg.render.noise import apply_depth_noise
+
+    width, height, f = 640, 480, 577.0
+    u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    rays = np.stack([(u - width / 2) / f, (v - height / 2) / f, np.ones_like(u)], axis=-1)  # camera, per unit z
+    R_level_camera = Rotation.from_euler("x", -15, degrees=True).as_matrix()  # pitched 15° down (y down, z ahead)
+    d = rays @ R_level_camera.T
+    for half_width_m, near_m in [(0.1, 1.0), (0.2, 1.0), (0.1, 1.4)]:
+        t, normal = np.full(u.shape, np.inf), np.zeros(u.shape + (3,))
+        # a wall 5 m ahead, one 4 m to the right, and the table top 0.6 m under the camera, near_m deep at most
+        for n, offset, table in [((0, 0, -1), 5.0, False), ((-1, 0, 0), 4.0, False), ((0, -1, 0), 0.6, True)]:
+            n = np.array(n, dtype=float)
+            facing = d @ -n
+            s = np.where(facing > 1e-6, offset / np.maximum(facing, 1e-9), np.inf)
+            if table:
+                p = d * s[..., None]
+                s = np.where((p[..., 2] <= near_m) & (np.abs(p[..., 0]) <= half_width_m), s, np.inf)
+            nearer = s < t
+            t, normal[nearer] = np.where(nearer, s, t), n
+        z = t * rays[..., 2]
+        cos_incidence = np.abs(np.einsum("hwc,hwc->hw", d / np.linalg.norm(d, axis=-1, keepdims=True), normal))
+        depth = np.round(apply_depth_noise(np.where(np.isfinite(z), z, 0.0), cos_incidence,
+                                           np.random.default_rng(3)) * 1000) / 1000
+        step = depth[::2, ::2]
+        points = (rays[::2, ::2] * step[..., None])[step > 0]
+        grid = points[voxel_indices(points, 0.03)]
+        assert (points[:, 2] < 2.0).mean() < 0.1 and len(grid) > 0.7 * len(points)
+        assert estimate_up_from_normals(grid) is None
+        floor = estimate_up_from_normals(grid, dense_xyz=points)
+        up = R_level_camera.T @ np.array([0.0, -1.0, 0.0])
+        assert floor is not None and _angle_deg(floor.up_camera, up) < 2.0
+        # estimate_floor hands the points on
+        assert estimate_floor(grid, np.full(len(grid), -1), "nyu40", dense_xyz=points) is not None

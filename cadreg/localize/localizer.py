@@ -347,7 +347,8 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
             clusters = cluster_objects(down.xyz, class_index, tolerance_m=cc.tolerance_m, min_points=cc.min_points)
             diag.scan_objects = [ScanObject(self.site.classes[c.cls], c.centroid.tolist(), len(c.index)) for c in clusters]
         with timer("gravity"):
-            floor = estimate_floor(down.xyz, down.labels, frame.label_set, gravity_camera=frame.gravity_camera)
+            floor = estimate_floor(down.xyz, down.labels, frame.label_set, gravity_camera=frame.gravity_camera,
+                                   dense_xyz=points.xyz)
             if floor is not None:
                 diag.notes.append(f"up from {floor.source}"
                                   + (f", camera {floor.height_m:.2f} m above floor" if floor.height_m else ""))
