@@ -255,4 +255,5 @@ def test_up_from_a_far_view_is_taken_from_the_frames_own_points_when_its_grid_sa
         up = R_level_camera.T @ np.array([0.0, -1.0, 0.0])
         assert floor is not None and _angle_deg(floor.up_camera, up) < 2.0
         # estimate_floor hands the points on
-        assert estimate_floor(grid, np.full(len(grid), -1), "nyu40", dense_xyz=points) is not None
+        handed = estimate_floor(grid, np.full(len(grid), -1), "nyu40", dense_xyz=points)
+        assert handed is not None and _angle_deg(handed.up_camera, up) < 2.0

@@ -838,9 +838,13 @@ def test_a_pose_that_looks_like_the_one_a_tie_break_put_first_stands_as_its_riva
     refined, has_rival, margin, rivals, notes = rank(shared_scan, T_shared, [_refined_entry(in_b, 0.81)])
     assert refined[0].T_map_camera is T_shared  # put first by the depth along the rays
     assert any("the depth along the frame's rays" in n for n in notes)
-    assert has_rival and margin < loc.config.match.ambiguity_margin
+    assert has_rival and margin < loc._view_margin(refined[0].score)
     assert any(pose_errors(c.T_map_camera, in_b)[0] < 1e-9 for c in rivals)
-    assert any("were not told from it: 1" in n for n in notes)
+    # the answer is no rival of its own, and no pose is listed twice
+    assert loc._distinct_from_all([c.T_map_camera for c in rivals], [T_shared]).all()
+    assert all(loc._distinct_from_all([c.T_map_camera for c in rivals[k + 1:]], [a.T_map_camera]).all()
+               for k, a in enumerate(rivals))
+    assert any("were not told from it: 1," in n for n in notes)
     frames = render_turn(scene0470_dir / "scene0470_00_vh_clean_2.ply",
                          scene0470_dir / "scene0470_00_vh_clean_2.labels.ply", tmp_path / "turn", n=2)
     chair_view, T_chair = RecordedFrames.open(frames).load(1)

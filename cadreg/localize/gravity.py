@@ -176,8 +176,11 @@ def estimate_up_from_normals(xyz: np.ndarray, *, max_roll_deg: float = 25.0, pit
     """
     kw = dict(max_roll_deg=max_roll_deg, pitch_range_deg=pitch_range_deg, step_deg=step_deg, tolerance_deg=tolerance_deg,
               min_horizontal=min_horizontal, min_vertical=min_vertical, second_wall_ratio=second_wall_ratio)
-    up_of = lambda points, sample: _up_from_normals(*planar_normals(  # noqa: E731
-        points, k=UP_NEIGHBORS, max_points=sample, max_flatness=UP_MAX_FLATNESS), **kw)
+
+    def up_of(points: np.ndarray, sample: int) -> Floor | None:
+        return _up_from_normals(*planar_normals(points, k=UP_NEIGHBORS, max_points=sample,
+                                                max_flatness=UP_MAX_FLATNESS), **kw)
+
     floor = up_of(xyz, UP_SAMPLE)
     if floor is None and len(xyz) > UP_SAMPLE:
         floor = up_of(xyz, UP_RETRY_SAMPLE)

@@ -269,11 +269,18 @@ class RefineStage:
                 # four rooms was answered `ok` in one of its copies; a real RedKitchen frame in a building holding
                 # two copies of the fused kitchen was answered `ok` in the copy it was not taken in, its true room's
                 # pose 0.013 behind, its depth agreement lowered by the next rooms seen through the map's holes.)
-                unexamined = self._unexamined_rivals(scan, refined + twins, renders, candidates, compared)
+                # (The copies of the twin check still stand, but for one the tie-break refined and put first.)
+                looked = refined + [t for t in twins if all(t.candidate is not r.candidate for r in refined)]
+                unexamined = self._unexamined_rivals(scan, looked, renders, candidates, compared)
                 copies = self._promoted_twins(scan, refined, center_camera, candidates, renders)
+                # a copy looked at again from the new answer replaces the same copy seen from the pose it replaced
+                unexamined = [c for c, keep in zip(unexamined, self._distinct_from_all(
+                    [c.T_map_camera for c in unexamined], [c.T_map_camera for c in copies])) if keep]
                 if unexamined or copies:
                     told = False
-                    rivals = rivals + unexamined + copies
+                    # the pose put first is the answer now, no rival of its own
+                    rivals = [c for c, keep in zip(rivals, self._distinct_from_all(
+                        [c.T_map_camera for c in rivals], [refined[0].T_map_camera])) if keep] + unexamined + copies
                     diag.notes.append(f"poses that look like the pose put first and were not told from it: "
                                       f"{len(unexamined)}, and copies of its view that show the frame as well: "
                                       f"{len(copies)}")

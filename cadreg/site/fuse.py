@@ -247,7 +247,8 @@ def fused_up(frames: RecordedFrames, indices: Sequence[int], normals: np.ndarray
     """(3,) the up of a map fused from `frames` at their poses (map frame).
 
     Each of up to `frames_used` frames spread over `indices` finds its own up from its flat surfaces, as a query
-    frame does (`estimate_up_from_normals` on the 3 cm grid), put into the map by its pose; the mean of the
+    frame first does (`estimate_up_from_normals` on the 3 cm grid; not the query's retry on its own points, whose
+    far floors keep the depth's steps, below), put into the map by its pose; the mean of the
     largest group within agree_deg of one another is the map's up. The fused surface's own normals are no match
     for that: fused from few views of a structured-light sensor, far floors keep the depth's steps, whose normals
     face the camera (a map fused from one frame of a lounge came out 16 degrees off). Frames that find no up leave
