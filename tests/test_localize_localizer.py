@@ -529,3 +529,34 @@ def test_a_close_view_of_a_bare_wall_slides_and_a_view_of_the_room_does_not(scen
     assert slides(scan_of(wall), T_wall)
     frame, T = _views(scene, 1, seed=3, min_objects=3)[0]
     assert not slides(scan_of(frame), T)
+
+
+@pytest.mark.realdata
+def test_an_answer_from_behind_the_maps_surfaces_is_not_claimed(scene0470_site_dir, scene0470_dir, tmp_path) -> None:
+    """`Localizer._seen_from_behind`: a close view of scene0470's door, rendered as a phone's 256 x 192 depth camera
+    sees it, fits the door's flat face as well from outside the room, turned 180° and 1.1 m off (the pose the
+    label-free search answered `ok`, confidence 0.94, before this check). From there nearly every point lies on
+    surfaces seen from behind; from the true pose, none: only the first is held back. A building has no such check
+    (its composed rooms are seen from behind across their unscanned sides)."""
+    from cadreg import Site
+    from cadreg.config import RenderConfig
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.localize.stages import StageTimer
+    from cadreg.render import LabelledMesh, render_frames
+    from cadreg.result import Diagnostics
+
+    T_true = np.array([[-0.107801, -0.564027, 0.818689, 2.696788], [-0.992321, 0.111285, -0.053996, 2.297449],
+                       [-0.060652, -0.818223, -0.571692, 1.375697], [0.0, 0.0, 0.0, 1.0]])
+    T_outside = np.array([[0.117486, 0.610837, -0.782991, 3.841899], [0.949979, -0.298876, -0.090621, 2.345214],
+                          [-0.289372, -0.733178, -0.615397, 1.38804], [0.0, 0.0, 0.0, 1.0]])
+    phone = RenderConfig(depth_width=256, depth_height=192, depth_fx=231.148, depth_fy=231.148, depth_cx=127.5,
+                         depth_cy=95.5, color_width=960, color_height=720, baseline_m=0.01, min_visible_objects=0)
+    mesh = LabelledMesh.from_ply(scene0470_dir / "scene0470_00_vh_clean_2.ply",
+                                 scene0470_dir / "scene0470_00_vh_clean_2.labels.ply")
+    render_frames(mesh, tmp_path / "door", 0, poses=[T_true], seed=7, config=phone)
+    frame, _ = RecordedFrames.open(tmp_path / "door").load(0)
+    loc = Localizer.from_site(Site.load(scene0470_site_dir))
+    diag = Diagnostics(site_id="s", bundle_version="v")
+    scan = loc._scan(frame, diag, StageTimer(diag.stage_ms))
+    assert not loc._seen_from_behind(scan, T_true, scan.center_camera)
+    assert loc._seen_from_behind(scan, T_outside, scan.center_camera)

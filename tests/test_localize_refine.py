@@ -392,3 +392,21 @@ def test_points_weighed_by_their_depth_noise_refine_closer_to_the_truth() -> Non
     assert loc._fits_better(run, plain_map, off, right) is right
     assert loc._fits_better(run, plain_map, right, off) is right
     assert loc._fits_better(run, plain_map, right, replace(right)) is right  # a tie keeps the first
+
+
+def test_a_map_seen_from_behind_is_told_by_its_scans_normals() -> None:
+    """`RefineMap.seen_from_behind`: a wall scanned from the room at x > 0 (its normals face +x). Seen from the room,
+    none of the points placed on it lie on surfaces seen from behind; from behind the wall (x < 0), all of them; a
+    point off the map counts for nothing; a map without normals, or no point on the map, says nothing (None)."""
+    rng = np.random.default_rng(2)
+    wall = np.column_stack([np.zeros(4000), rng.uniform(-2, 2, 4000), rng.uniform(0, 2.5, 4000)])
+    normals = np.tile([1.0, 0.0, 0.0], (len(wall), 1))
+    rgb = np.full((len(wall), 3), 0.5)
+    scanned = RefineMap(wall, rgb, normals=normals)
+    on_wall = np.column_stack([np.zeros(50), rng.uniform(-1, 1, 50), rng.uniform(0.5, 2, 50)])
+    off_map = on_wall + [1.0, 0.0, 0.0]
+    assert scanned.seen_from_behind(on_wall, np.array([2.0, 0.0, 1.2])) == 0.0
+    assert scanned.seen_from_behind(on_wall, np.array([-2.0, 0.0, 1.2])) == 1.0
+    assert scanned.seen_from_behind(np.vstack([on_wall, off_map]), np.array([-2.0, 0.0, 1.2])) == 1.0
+    assert scanned.seen_from_behind(off_map, np.array([-2.0, 0.0, 1.2])) is None
+    assert RefineMap(wall, rgb).seen_from_behind(on_wall, np.array([-2.0, 0.0, 1.2])) is None

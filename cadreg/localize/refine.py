@@ -122,7 +122,7 @@ class RefineMap:
     def __init__(self, xyz: np.ndarray, rgb: np.ndarray, class_index: np.ndarray | None = None, *, fine_voxel_m: float = 0.025, coarse_voxel_m: float = 0.08,
                  color_scales_m: tuple[float, ...] = (0.08, 0.04, 0.02), color_weight_m: float = 0.05,
                  fitness_voxel_m: float = FITNESS_VOXEL_M, stored_target: bool = False, gridded: bool = False,
-                 tree_ordered: bool = False) -> None:
+                 tree_ordered: bool = False, normals: np.ndarray | None = None) -> None:
         self.xyz = np.asarray(xyz, dtype=np.float64)
         rgb = np.asarray(rgb)
         self._rgb_bytes = rgb if rgb.dtype == np.uint8 else None
@@ -152,6 +152,8 @@ class RefineMap:
         self.fit_cls = (np.full(len(self.fit_xyz), -1, dtype=np.int64) if class_index is None
                         else np.asarray(class_index, dtype=np.int64)[keep])
         self.has_classes = bool(np.any(self.fit_cls >= 0))  # a map fused without labels has none (`agreement`)
+        # The scan's own surface normals of fit_xyz, facing the side it was scanned from, or None (`seen_from_behind`)
+        self.fit_normals = None if normals is None else np.asarray(normals, dtype=np.float64)[keep]
         # The nearest neighbours of `fitness`, `agreement` and the grid GICP, bounded by a distance: for points off
         # the map (a wrong hypothesis, a frame looking past the map's edge) small_gicp's unbounded search took 30 ms
         # for 1000 points where a bounded one takes 0.8.
@@ -241,6 +243,22 @@ class RefineMap:
         ok = np.isfinite(d)
         rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else 0.0
         return float(ok.mean()), rmse
+
+    def seen_from_behind(self, xyz_map: np.ndarray, camera_xyz: np.ndarray, *, inlier_m: float = 0.05,
+                         min_cos: float = 0.2) -> float | None:
+        """Share of the points within inlier_m of the map (xyz_map (n, 3), map frame) whose nearest map point's normal
+        faces away from the camera at camera_xyz ((3,), map frame) by more than min_cos: surfaces a sensor there sees
+        from behind. None without the map's normals (a composed building's: see `region_cloud`) or with no point on
+        the map."""
+        if self.fit_normals is None or len(xyz_map) == 0:
+            return None
+        d, i = self.fit_tree.query(xyz_map, k=1, distance_upper_bound=inlier_m)
+        on = np.isfinite(d)
+        if not on.any():
+            return None
+        rays = xyz_map[on] - np.asarray(camera_xyz, dtype=np.float64)
+        facing = np.einsum("ij,ij->i", self.fit_normals[i[on]], rays) / np.maximum(np.linalg.norm(rays, axis=1), 1e-9)
+        return float(np.mean(facing > min_cos))
 
     def agreement(self, xyz_map: np.ndarray, lab: np.ndarray, cls: np.ndarray | None, *, inlier_m: float = 0.05,
                   color_scale: float = 25.0) -> tuple[float, float, float]:

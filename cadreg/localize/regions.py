@@ -117,9 +117,13 @@ def build_index(site: Site, regions: list[Region], region: Region, config: Local
         cloud = (halo_grid(site, regions, region, rc.map_points, config.regions.halo_m) if building
                  else region_cloud(site, region, rc.map_points))
         xyz, rgb, cls = cloud.points.astype(np.float64), cloud.rgb01(), cloud.class_index
+    # A scan's normals face the side it was scanned from: a one-room map keeps them (`RefineMap.seen_from_behind`).
+    # A composed building's rooms are scans placed side by side, and a view across a room's unscanned side sees the
+    # next room's walls from behind (the benchmark's renders at their true poses: up to 97 % of their points).
+    normals = None if building else cloud.normals
     refine_map = RefineMap(xyz, rgb, cls, fine_voxel_m=rc.fine_voxel_m, coarse_voxel_m=rc.coarse_voxel_m,
                            color_scales_m=rc.color_scales_m, color_weight_m=rc.color_weight_m,
-                           stored_target=building, gridded=building, tree_ordered=tree_ordered)
+                           stored_target=building, gridded=building, tree_ordered=tree_ordered, normals=normals)
     return RegionIndex(region, refine_map, ViewCheck(refine_map.xyz))
 
 
