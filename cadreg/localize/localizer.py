@@ -111,7 +111,6 @@ def compile_loops() -> None:
         module.warm()
 
 
-
 class Localizer(RefineStage, BuildingViews, FallbackStage):
     """Localize frames in one site. Build with `from_site`; `localize` is read-only and may be called repeatedly.
 

@@ -248,8 +248,8 @@ class RefineMap:
                          min_cos: float = 0.2) -> float | None:
         """Share of the points within inlier_m of the map (xyz_map (n, 3), map frame) whose nearest map point's normal
         faces away from the camera at camera_xyz ((3,), map frame) by more than min_cos: surfaces a sensor there sees
-        from behind. None without the map's normals (a composed building's: see `region_cloud`) or with no point on
-        the map."""
+        from behind. None without the map's normals (a composed building's: see `regions.build_index`) or with no
+        point on the map."""
         if self.fit_normals is None or len(xyz_map) == 0:
             return None
         d, i = self.fit_tree.query(xyz_map, k=1, distance_upper_bound=inlier_m)
