@@ -10,7 +10,7 @@ how closely its points lie on the map orders them (`refine_stage.RefineStage._ra
 
 `BuildingViews` is a part of `Localizer` (one of its base classes), kept in a module of its own: its methods read the
 localizer's `config`, `field` (the site's distance field), `maps` (`RegionMaps`), `twins` (`RoomTwins`), `graph`
-(`MapGraph`) and its `_distinct`, `_distinct_from_all` and `region_of`.
+(`MapGraph`) and its `_distinct`, `_distinct_from_all`, `_apart_from` and `region_of`.
 """
 
 from __future__ import annotations
@@ -153,8 +153,7 @@ class BuildingViews:
                                         among={self._roi_region(t.T_map_camera, center_camera) for t in twins}
                                         | {self._roi_region(r.T_map_camera, center_camera) for r in refined[1:]})
                 # a copy seen from the new winner replaces the same copy seen from an earlier pose
-                apart = self._distinct_from_all([t.T_map_camera for t in twins], [u.T_map_camera for u in more])
-                twins = [t for t, keep in zip(twins, apart) if keep] + more
+                twins = self._apart_from(twins, [u.T_map_camera for u in more]) + more
                 candidates[len(refined):] = [c for c in candidates[len(refined):]
                                              if all(c is not t.candidate for t in twins)]
         return twins
@@ -259,8 +258,7 @@ class BuildingViews:
             return []
         # The objects the winner matched, carried into each copy: what pins the copy's pose as they pin the winner's.
         assignment = candidates[0].assignment
-        apart = self._distinct_from_all([c.T_map_camera for c in candidates[refined:]], moved)
-        candidates[refined:] = [c for c, keep in zip(candidates[refined:], apart) if keep]
+        candidates[refined:] = self._apart_from(candidates[refined:], moved)
         T = np.array(moved)
         # Each copy is first looked at along a quarter of the rays (a 100-room building has 99 copies, and a full
         # render costs 2 ms a pose): only the copies that may show the frame about as well as the answer are
@@ -495,8 +493,7 @@ class BuildingViews:
         the refined contenders and the copies of the view) distinct from every pose of `compared` (the poses the
         tie-break told apart)."""
         _, _, alike = self._view_rivals(looked, renders, candidates, scan)
-        apart = self._distinct_from_all([c.T_map_camera for c in alike], compared)
-        return [c for c, keep in zip(alike, apart) if keep]
+        return self._apart_from(alike, compared)
 
     def _render_of(self, scan: Scan, renders: Renders, outcome: RefineOutcome) -> np.ndarray:
         """The map's depth along the frame's rays at an outcome's pose, rendered and kept when it has none yet: an
@@ -576,8 +573,7 @@ class BuildingViews:
         T, mine = refined[0].T_map_camera, self._render_of(scan, renders, refined[0].outcome)
         rivals, margin, has_rival = [], score, False
         others = refined[1:]
-        apart = self._distinct_from_all([r.T_map_camera for r in others], [T])
-        others = [r for r, keep in zip(others, apart) if keep]
+        others = self._apart_from(others, [T])
         if others:
             # all at once: a 100-room frame's refined contenders and copies of the view are some thirty poses
             has_rival, margin = True, min(margin, score - max(r.score for r in others))
@@ -586,8 +582,7 @@ class BuildingViews:
             rivals += [next(c for c in candidates if c.T_map_camera is r.T_map_camera)
                        for r, a in zip(others, alike) if a]
         done = [r.T_map_camera for r in refined] + [r.candidate.T_map_camera for r in refined]
-        apart = self._distinct_from_all([c.T_map_camera for c in candidates], done)
-        rest = [c for c, keep in zip(candidates, apart) if keep]
+        rest = self._apart_from(candidates, done)
         if rest:
             has_rival = True
             alike = self._look_alike(scan, winner.score, np.array([c.score for c in rest]),

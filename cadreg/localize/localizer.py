@@ -705,8 +705,7 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
             # Listed once: the candidates at the refined pose (the winner's coarse pose, a few millimetres off) are
             # not listed beside it.
             best = replace(winner.hypothesis, T_map_camera=T)
-            apart = self._distinct_from_all([h.T_map_camera for h in hypotheses], [T])
-            others = [h for h, keep in zip(hypotheses, apart) if keep]
+            others = self._apart_from(hypotheses, [T])
             return LocalizationResult(Status.UNCERTAIN, None, confidence=trust, hypotheses=[best] + others[:top_k - 1],
                                       diagnostics=diag, frame_id=frame_id)
         if status == Status.AMBIGUOUS:
@@ -948,6 +947,12 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         if not len(poses) or not len(others):
             return np.ones(len(poses), dtype=bool)
         return self._distinct_pairs(np.asarray(poses), np.asarray(others)).all(axis=1)
+
+    def _apart_from(self, items: list, others: list[np.ndarray]) -> list:
+        """The items (each with its `T_map_camera`: candidates, hypotheses, refined entries), in order, whose pose is
+        distinct from every one of `others` ((4, 4) each)."""
+        keep = self._distinct_from_all([x.T_map_camera for x in items], others)
+        return [x for x, k in zip(items, keep) if k]
 
 
 def _leaves_of(searches: list[Hypotheses | None]) -> Hypotheses | None:

@@ -274,13 +274,11 @@ class RefineStage:
                 unexamined = self._unexamined_rivals(scan, looked, renders, candidates, compared)
                 copies = self._promoted_twins(scan, refined, center_camera, candidates, renders)
                 # a copy looked at again from the new answer replaces the same copy seen from the pose it replaced
-                unexamined = [c for c, keep in zip(unexamined, self._distinct_from_all(
-                    [c.T_map_camera for c in unexamined], [c.T_map_camera for c in copies])) if keep]
+                unexamined = self._apart_from(unexamined, [c.T_map_camera for c in copies])
                 if unexamined or copies:
                     told = False
                     # the pose put first is the answer now, no rival of its own
-                    rivals = [c for c, keep in zip(rivals, self._distinct_from_all(
-                        [c.T_map_camera for c in rivals], [refined[0].T_map_camera])) if keep] + unexamined + copies
+                    rivals = self._apart_from(rivals, [refined[0].T_map_camera]) + unexamined + copies
                     diag.notes.append(f"poses that look like the pose put first and were not told from it: "
                                       f"{len(unexamined)}, and copies of its view that show the frame as well: "
                                       f"{len(copies)}")
