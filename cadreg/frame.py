@@ -35,6 +35,8 @@ class Frame:
     T_map_camera_prior : (4, 4) optional pose prior (colour camera -> map).
     search_region : where the client says the camera is (a ball in the map frame, or region ids): hypotheses
         elsewhere are not considered.
+    depth_range_m : the farthest depth (metres, along the optical axis) the depth camera measures a surface at, when
+        the client knows it (a Kinect v1 about 4, a render its cut-off); None: not known (`sensor_range_m`).
     """
 
     depth: np.ndarray
@@ -49,6 +51,7 @@ class Frame:
     T_map_camera_prior: np.ndarray | None = None
     frame_id: str | None = None
     search_region: SearchRegion | None = None
+    depth_range_m: float | None = None
 
     def __post_init__(self) -> None:
         self.validate()
@@ -103,5 +106,10 @@ class Frame:
             self.T_map_camera_prior = P
         if self.search_region is not None and not isinstance(self.search_region, SearchRegion):
             raise InvalidFrame(f"search_region must be a SearchRegion, got {type(self.search_region).__name__}")
+        if self.depth_range_m is not None:
+            r = self.depth_range_m
+            if isinstance(r, bool) or not isinstance(r, (int, float, np.floating)) or not (np.isfinite(r) and r > 0):
+                raise InvalidFrame(f"depth_range_m must be a positive number of metres, got {r!r}")
+            self.depth_range_m = float(r)
         if not np.any(d):
             raise InvalidFrame("depth has no valid pixel (all zero)")

@@ -24,7 +24,7 @@ from cadreg.errors import CadregError
 from cadreg.frame import Frame
 from cadreg.io.frames import RecordedFrames
 import service.codec as codec
-from service.schemas import FrameMeta, Intrinsics
+from service.schemas import FrameMeta
 
 _CONTENT_TYPES = {"PNG": "image/png", "JPEG": "image/jpeg"}
 
@@ -81,26 +81,6 @@ class EncodedFrame:
 FrameLike = Union[Frame, EncodedFrame, tuple]  # tuple = (folder path or RecordedFrames, index)
 
 
-def meta_for(frame: Frame, *, top_k: int = 5) -> FrameMeta:
-    """The FrameMeta describing `frame` (as `codec.encode_frame_parts` builds it, without encoding images)."""
-
-    def intr(K: Any) -> Intrinsics:
-        return Intrinsics(fx=float(K.fx), fy=float(K.fy), cx=float(K.cx), cy=float(K.cy))
-
-    T = np.asarray(frame.T_color_depth, dtype=float)
-    return FrameMeta(
-        frame_id=frame.frame_id,
-        depth_intrinsics=intr(frame.depth_intrinsics),
-        color_intrinsics=None if frame.color_intrinsics == frame.depth_intrinsics else intr(frame.color_intrinsics),
-        T_color_depth=None if np.array_equal(T, np.eye(4)) else T.tolist(),
-        depth_scale=float(frame.depth_scale),
-        label_set=frame.label_set,
-        gravity=None if frame.gravity_camera is None else [float(x) for x in frame.gravity_camera],
-        pose_prior=None if frame.T_map_camera_prior is None else np.asarray(frame.T_map_camera_prior).tolist(),
-        top_k=top_k,
-    )
-
-
 def encode_frame(frame: Frame, *, top_k: int = 5, T_map_camera: np.ndarray | None = None) -> EncodedFrame:
     """Encode a Frame's arrays (PNG, compress_level=1, through the service codec)."""
     parts, meta = codec.encode_frame_parts(frame, top_k=top_k)
@@ -123,7 +103,7 @@ def encode_recorded(
     """
     rf = frames if isinstance(frames, RecordedFrames) else RecordedFrames.open(frames)
     frame, T_map_camera = rf.load(index)
-    meta = meta_for(frame, top_k=top_k)
+    meta = codec.frame_meta(frame, top_k=top_k)
     source = f"{rf.root}:{index}"
     if not raw:
         enc = encode_frame(frame, top_k=top_k, T_map_camera=T_map_camera)

@@ -194,17 +194,23 @@ def _intrinsics_out(K: CameraIntrinsics) -> Intrinsics:
 
 
 def encode_frame_parts(frame: Frame, *, top_k: int = 5) -> tuple[dict[str, bytes], FrameMeta]:
-    """Encode a Frame into wire parts (PNG, compress_level=1) and its FrameMeta.
+    """Encode a Frame into wire parts (PNG, compress_level=1) and its FrameMeta (`frame_meta`).
 
     Returns parts {"color": PNG RGB, "depth": PNG uint16, "labels": PNG uint8/uint16 (only when the frame has
-    labels)} and the meta (T_color_depth sent only when not the identity; colour intrinsics only when they differ).
+    labels)} and the meta.
     """
     parts = {"color": _png(np.ascontiguousarray(frame.color, dtype=np.uint8)), "depth": _png(frame.depth)}
     if frame.labels is not None:
         parts["labels"] = _png(frame.labels)
+    return parts, frame_meta(frame, top_k=top_k)
+
+
+def frame_meta(frame: Frame, *, top_k: int = 5) -> FrameMeta:
+    """The FrameMeta describing a Frame (T_color_depth sent only when not the identity; colour intrinsics only when
+    they differ)."""
     T = np.asarray(frame.T_color_depth, dtype=float)
     same_camera = frame.color_intrinsics == frame.depth_intrinsics
-    meta = FrameMeta(
+    return FrameMeta(
         frame_id=frame.frame_id,
         depth_intrinsics=_intrinsics_out(frame.depth_intrinsics),
         color_intrinsics=None if same_camera else _intrinsics_out(frame.color_intrinsics),
@@ -215,8 +221,8 @@ def encode_frame_parts(frame: Frame, *, top_k: int = 5) -> tuple[dict[str, bytes
         pose_prior=None if frame.T_map_camera_prior is None else np.asarray(frame.T_map_camera_prior).tolist(),
         top_k=top_k,
         search_region=None if frame.search_region is None else frame.search_region.to_dict(),
+        depth_range_m=frame.depth_range_m,
     )
-    return parts, meta
 
 
 def _camera(intr: Intrinsics, width: int, height: int, which: str) -> CameraIntrinsics:
@@ -269,6 +275,7 @@ def decode_frame(parts: dict[str, bytes], meta: FrameMeta | dict[str, Any] | str
             T_map_camera_prior=None if meta.pose_prior is None else np.asarray(meta.pose_prior, dtype=float),
             frame_id=meta.frame_id,
             search_region=_search_region(meta.search_region),
+            depth_range_m=meta.depth_range_m,
         )
     except CadregError:
         raise

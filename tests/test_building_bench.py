@@ -14,6 +14,7 @@ from scipy.spatial import cKDTree
 
 from cadreg.bench import FrameOutcome, ViewTruth, format_table, summarize, views_from_doc
 from cadreg.cli.main import main
+from cadreg.config import NoiseConfig
 from cadreg.geometry import make_T
 from cadreg.site.layout import LayoutConfig, RoomSource, generate_layout, grid_shape, placed_footprint
 from tracking_rooms import look_at
@@ -307,6 +308,7 @@ def test_render_layout_writes_frames_and_views_json(scene0470_dir: Path, scene04
     assert set(doc["rooms"]) == {"a", "b", "c"} and doc["oracle"]["min_agreement"] == 0.97
     frames = RecordedFrames.open(out)
     assert frames.indices == [0, 1, 2, 3]
+    assert frames.depth_range_m == NoiseConfig().max_depth_m  # the sensor the views were rendered with reaches 6 m
     for v in doc["views"]:
         assert set(v) >= {"index", "room", "repeated", "repeated_in", "T_room_camera"}
         assert v["room"] not in v["repeated_in"] and v["repeated"] == bool(v["repeated_in"])

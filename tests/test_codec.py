@@ -43,6 +43,7 @@ def _frame(labels_dtype=np.uint16, color_size=(64, 48), rng_seed=0) -> Frame:
         gravity_camera=np.array([0.0, 1.0, 0.0]),
         T_map_camera_prior=prior,
         frame_id="f-7",
+        depth_range_m=4.5,
     )
 
 
@@ -81,6 +82,7 @@ def test_frame_round_trip_through_envelope(labels_dtype) -> None:
     np.testing.assert_allclose(back.T_map_camera_prior, frame.T_map_camera_prior)
     np.testing.assert_allclose(back.gravity_camera, frame.gravity_camera)
     assert back.frame_id == "f-7"
+    assert back.depth_range_m == 4.5
 
 
 def test_same_camera_defaults_and_jpeg_color() -> None:
@@ -95,6 +97,7 @@ def test_same_camera_defaults_and_jpeg_color() -> None:
     assert frame.color_intrinsics == frame.depth_intrinsics
     np.testing.assert_array_equal(frame.T_color_depth, np.eye(4))
     assert frame.labels is None and frame.depth_scale == 1000.0 and frame.label_set == "nyu40"
+    assert frame.depth_range_m is None
 
 
 GOOD_META = {"depth_intrinsics": {"fx": 35.0, "fy": 35.0, "cx": 19.5, "cy": 14.5}}
@@ -129,6 +132,9 @@ def _good_parts() -> dict[str, bytes]:
         (lambda p, m: m.update(T_color_depth=[[1, 0, 0], [0, 1, 0], [0, 0, 1]]), "4x4"),
         (lambda p, m: m.update(T_color_depth=[[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]), "rigid"),
         (lambda p, m: m.update(gravity=[0, 0, 0]), "gravity"),
+        (lambda p, m: m.update(depth_range_m=0), "depth_range_m"),
+        (lambda p, m: m.update(depth_range_m=-4.0), "depth_range_m"),
+        (lambda p, m: m.update(depth_range_m="4"), "depth_range_m"),
     ],
 )
 def test_bad_frames_raise_invalid_frame(mutate, needle) -> None:

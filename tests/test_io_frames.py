@@ -108,14 +108,20 @@ def test_scannet_rig_semantics_and_defaults(tmp_path: Path) -> None:
 
 
 def test_frames_json_overrides(tmp_path: Path) -> None:
-    FramesWriter(tmp_path, DEPTH, COLOR, depth_scale=5000.0, label_set="scannet20").write(0, Frame(
+    FramesWriter(tmp_path, DEPTH, COLOR, depth_scale=5000.0, label_set="scannet20", depth_range_m=4.5).write(0, Frame(
         depth=np.full((48, 64), 7, np.uint16), color=np.zeros((72, 96, 3), np.uint8),
         depth_intrinsics=DEPTH, color_intrinsics=COLOR, depth_scale=5000.0, label_set="scannet20"))
     meta = json.loads((tmp_path / "frames.json").read_text())
-    assert meta == {"depth_scale": 5000.0, "label_set": "scannet20", "depth_size": [64, 48], "color_size": [96, 72]}
+    assert meta == {"depth_scale": 5000.0, "label_set": "scannet20", "depth_size": [64, 48], "color_size": [96, 72],
+                    "depth_range_m": 4.5}
     frames = RecordedFrames.open(tmp_path)
-    assert frames.depth_scale == 5000.0 and frames.label_set == "scannet20"
+    assert frames.depth_scale == 5000.0 and frames.label_set == "scannet20" and frames.depth_range_m == 4.5
+    assert frames.load(0)[0].depth_range_m == 4.5 and frames.meta()["depth_range_m"] == 4.5
     assert frames.load(0)[1] is None and frames.pose(0) is None
+    for bad in (0, -1.0, "far", True):
+        (tmp_path / "frames.json").write_text(json.dumps({**meta, "depth_range_m": bad}))
+        with pytest.raises(InvalidFileError, match="depth_range_m"):
+            RecordedFrames.open(tmp_path)
 
 
 @pytest.mark.realdata

@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cadreg.geometry import pose_errors
-from cadreg.localize.field_view import FieldView, align_on_field
+from cadreg.localize.field_view import DEFAULT_DEPTH_RANGE_M, MAX_DEPTH_RANGE_M, FieldView, align_on_field, sensor_range_m
 from cadreg.localize.points import frame_to_points, voxel_downsample
 from cadreg.localize.score import DistanceField, building_field
 from cadreg.localize.synthetic import look_pose, make_scene, render_frame
@@ -90,6 +90,47 @@ def test_the_sensor_range_bounds_what_is_measured_and_rendered(field, view_and_p
     assert np.all(short.measured[np.isfinite(short.measured)] <= 1.0)
     rendered = short.render(field, T)[0]
     assert np.all(rendered[np.isfinite(rendered)] <= 1.0 + 0.05)
+
+
+def test_the_sensor_range_is_the_clients_else_the_default_or_what_the_frame_measured(view_and_pose) -> None:
+    from dataclasses import replace
+
+    frame, _ = view_and_pose
+    frame = replace(frame, depth=np.where(frame.depth > 3000, 0, frame.depth).astype(np.uint16))
+    farthest = float(frame.depth.max()) / frame.depth_scale
+    assert 2.0 < farthest <= 3.0
+    assert sensor_range_m(replace(frame, depth_range_m=None)) == DEFAULT_DEPTH_RANGE_M
+    assert sensor_range_m(replace(frame, depth_range_m=5.0)) == 5.0
+    assert sensor_range_m(replace(frame, depth_range_m=1.0)) == farthest  # it measured farther than it said
+    assert sensor_range_m(replace(frame, depth_range_m=30.0)) == MAX_DEPTH_RANGE_M
+    far = frame.depth.copy()
+    far[0, 0] = 65535  # a 16-bit "no depth" that is not 0
+    assert sensor_range_m(replace(frame, depth=far, depth_range_m=None)) == MAX_DEPTH_RANGE_M
+    assert FieldView(replace(frame, depth_range_m=None)).max_depth_m == DEFAULT_DEPTH_RANGE_M
+
+
+def test_a_surface_beyond_the_sensors_range_on_a_ray_it_measured_nothing_on_is_not_held_against_a_pose(
+        field, view_and_pose) -> None:
+    """With the frame's far half cut off (a camera that measured nothing there), the map's surfaces beyond the
+    camera's range on those rays count neither way; within its range they count against the pose."""
+    from dataclasses import replace
+
+    frame, T = view_and_pose
+    z = frame.depth.astype(float) / frame.depth_scale
+    cut_m = float(np.median(z[z > 0]))
+    short = replace(frame, depth=np.where(z > cut_m, 0, frame.depth).astype(np.uint16))
+    seen_to_cut = FieldView(replace(short, depth_range_m=cut_m), grid=(40, 30))
+    seen_to_far = FieldView(replace(short, depth_range_m=MAX_DEPTH_RANGE_M), grid=(40, 30))
+    assert seen_to_cut.max_depth_m == pytest.approx(cut_m, abs=1e-3)
+    shown = seen_to_cut.render(field, T)[0]
+    assert np.all(shown[np.isfinite(shown)] <= cut_m + 0.05)
+    held = seen_to_far.render(field, T)[0]
+    beyond = np.isfinite(held) & ~np.isfinite(seen_to_far.measured) & (held > cut_m + 0.05)
+    assert beyond.sum() > 0.2 * len(held)
+    whole = FieldView(frame, grid=(40, 30))
+    at_truth = whole.agreement(whole.render(field, T))[0]  # (the synthetic map and frame agree on ~3/4 of the rays)
+    assert seen_to_cut.agreement(shown)[0] == pytest.approx(at_truth, abs=0.03)
+    assert seen_to_far.agreement(held)[0] < at_truth - 0.2
 
 
 @pytest.mark.parametrize("up", [True, False])

@@ -851,3 +851,60 @@ def test_a_pose_that_looks_like_the_one_a_tie_break_put_first_stands_as_its_riva
     diag = Diagnostics(site_id="s", bundle_version="v")
     refined, has_rival, margin, rivals, notes = rank(loc._scan(chair_view, diag, StageTimer(diag.stage_ms)), T_chair, [])
     assert refined[0].T_map_camera is T_chair and not has_rival and rivals == []
+
+
+@pytest.fixture(scope="module")
+def exact_copies(scene0470_site_dir: Path, scene0470_dir: Path, tmp_path_factory: pytest.TempPathFactory):
+    """(site dir, frame, T_map_camera) of two exact copies of the scene0470 room, "b" 6 m along x from "a", and a
+    view from room "a" along x, over its far wall (1.37 m high), rendered from the building (Kinect-like noise, a
+    6 m cut-off): room "b" lies 5.4-6 m from the camera."""
+    import json
+
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.render import LabelledMesh, render_frames
+    from cadreg.render.building import building_mesh, building_rooms
+    from cadreg.site.compose import compose_site, read_layout
+    from tracking_rooms import ROOM_B_OFFSET_M, look_at
+
+    out = tmp_path_factory.mktemp("exact-copies")
+    moved = np.eye(4)
+    moved[0, 3] = ROOM_B_OFFSET_M
+    (out / "LAYOUT.json").write_text(json.dumps({"site_id": "copies", "rooms": [
+        {"name": "a", "bundle": str(scene0470_site_dir), "T_building_room": np.eye(4).tolist()},
+        {"name": "b", "bundle": str(scene0470_site_dir), "T_building_room": moved.tolist()}]}))
+    layout = read_layout(out / "LAYOUT.json")
+    compose_site(layout, out).save(out / "site")
+    mesh = LabelledMesh.from_ply(scene0470_dir / "scene0470_00_vh_clean_2.ply",
+                                 scene0470_dir / "scene0470_00_vh_clean_2.labels.ply")
+    nodes = Site.load(scene0470_site_dir).graph.nodes
+    rooms = building_rooms(layout, {str(scene0470_site_dir): mesh}, {str(scene0470_site_dir): nodes})
+    T = look_at(np.array([0.6, 1.5, 1.7]), np.array([3.5, 1.4, 1.3]))
+    render_frames(building_mesh(rooms), out / "view", 0, poses=[T], seed=0)
+    frame, T_map_camera = RecordedFrames.open(out / "view").load(0)
+    return out / "site", frame, T_map_camera
+
+
+@pytest.mark.parametrize("labels", [True, False])
+def test_a_copy_told_only_by_surfaces_beyond_the_sensors_range_stands_as_a_rival(exact_copies, labels: bool) -> None:
+    """`field_view.sensor_range_m`: a camera that measures to 6 m (the render says so) sees room "b" over room
+    "a"'s far wall, and from the same place in room "b" nothing is there: `ok` in "a". The same frame as a camera
+    that measures nothing beyond 4 m (its depth beyond 3.8 m cut, no range given) has no word on room "b": the
+    two rooms show it alike, `ambiguous`, both listed. (Counted against "a", room "b"'s surfaces had it answered
+    `ok` in "b", 6 m off, as real RedKitchen frames were in a building of two copies of their fused kitchen.)"""
+    from dataclasses import replace
+
+    from tracking_rooms import ROOM_B_OFFSET_M, near
+
+    site_dir, frame, T = exact_copies
+    frame = frame if labels else replace(frame, labels=None)
+    to_b = np.eye(4)
+    to_b[0, 3] = ROOM_B_OFFSET_M
+    assert frame.depth_range_m == 6.0 and frame.depth.max() > 5400
+    loc = Localizer.from_site(Site.load(site_dir))
+    seen_far = loc.localize(frame)
+    assert seen_far.status is Status.OK and near(seen_far.T_map_camera, T)
+    short = replace(frame, depth=np.where(frame.depth > 3800, 0, frame.depth).astype(np.uint16), depth_range_m=None)
+    seen_near = loc.localize(short)
+    assert seen_near.status is Status.AMBIGUOUS
+    listed = [h.T_map_camera for h in seen_near.hypotheses]
+    assert any(near(P, T) for P in listed) and any(near(P, to_b @ T) for P in listed)

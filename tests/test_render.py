@@ -192,6 +192,9 @@ def test_render_is_deterministic_and_honours_given_poses(scene_mesh: LabelledMes
     frames = RecordedFrames.open(tmp_path / "c")
     assert len(frames) == 2 and all(np.allclose(frames.pose(i), T) for i, T in zip(frames.indices, poses))
     assert [x.index for x in c] == [0, 1]
+    # the noise model's cut-off is the frames' depth range; noiseless frames measure everything and say nothing
+    assert RecordedFrames.open(tmp_path / "a").load(0)[0].depth_range_m == NoiseConfig().max_depth_m
+    assert frames.depth_range_m is None and frames.load(0)[0].depth_range_m is None
 
 
 def test_unlabelled_mesh_needs_zero_visible_objects(tmp_path: Path) -> None:

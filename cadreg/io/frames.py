@@ -5,7 +5,8 @@ ScanNet export layout (DESIGN §4)::
     color/<i>.jpg|png   depth/<i>.png (uint16)   label/<i>.png (uint16, optional)   pose/<i>.txt (4x4, optional)
     intrinsic/intrinsic_depth.txt  intrinsic/intrinsic_color.txt  (4x4 or 3x3 K)
     intrinsic/extrinsic_depth.txt  intrinsic/extrinsic_color.txt  (4x4, camera -> rig; identity when missing)
-    frames.json  {"depth_scale": 1000.0, "label_set": "nyu40", "depth_size": [W, H], "color_size": [W, H]}
+    frames.json  {"depth_scale": 1000.0, "label_set": "nyu40", "depth_size": [W, H], "color_size": [W, H],
+                  "depth_range_m": 6.0 (optional: the depth camera's range, `Frame.depth_range_m`)}
 
 Frames: `extrinsic_color.txt` = T_rig_color, `extrinsic_depth.txt` = T_rig_depth, `pose/<i>.txt` = T_map_rig, so
 `T_color_depth = inv(T_rig_color) @ T_rig_depth` and `T_map_camera = T_map_rig @ T_rig_color` (camera = colour
@@ -135,6 +136,8 @@ class RecordedFrames:
     depth_intrinsics, color_intrinsics : CameraIntrinsics of the two cameras.
     T_color_depth : (4, 4) float64, depth camera -> colour camera.
     depth_scale : depth units per metre; label_set : name of the label ids in label images.
+    depth_range_m : the depth camera's range (metres, frames.json's "depth_range_m"), None when the folder does not
+    say (`Frame.depth_range_m`).
     """
 
     def __init__(
@@ -149,6 +152,7 @@ class RecordedFrames:
         depth_scale: float,
         label_set: str,
         files: dict[int, dict[str, Path | None]],
+        depth_range_m: float | None = None,
     ) -> None:
         self.root = Path(root)
         self.layout = layout
@@ -159,6 +163,7 @@ class RecordedFrames:
         self._T_rig_color = np.asarray(T_rig_color, dtype=np.float64)
         self.depth_scale = float(depth_scale)
         self.label_set = label_set
+        self.depth_range_m = depth_range_m
         self._files = files
 
     # construction ------------------------------------------------------------------------------------------
@@ -222,10 +227,15 @@ class RecordedFrames:
                 raise InvalidFrame(f"depth_scale must be positive, got {depth_scale}")
         except (InvalidFrame, TypeError, ValueError) as exc:
             raise InvalidFileError(intr, f"bad camera description ({exc})") from exc
+        depth_range_m = meta.get("depth_range_m")
+        if depth_range_m is not None and (isinstance(depth_range_m, bool) or not isinstance(depth_range_m, (int, float))
+                                          or not (np.isfinite(depth_range_m) and depth_range_m > 0)):
+            raise InvalidFileError(meta_path, f"depth_range_m must be a positive number of metres, got {depth_range_m!r}")
         return cls(
             root, "scannet", indices, depth_intr, color_intr,
             T_color_depth=invert_T(T_rig_color) @ T_rig_depth, T_rig_color=T_rig_color,
             depth_scale=depth_scale, label_set=str(meta.get("label_set", "nyu40")), files=files,
+            depth_range_m=None if depth_range_m is None else float(depth_range_m),
         )
 
     @classmethod
@@ -318,7 +328,7 @@ class RecordedFrames:
                 depth=depth, color=color, labels=labels,
                 depth_intrinsics=self.depth_intrinsics, color_intrinsics=self.color_intrinsics,
                 T_color_depth=self.T_color_depth, depth_scale=self.depth_scale, label_set=self.label_set,
-                frame_id=str(i),
+                frame_id=str(i), depth_range_m=self.depth_range_m,
             )
         except InvalidFrame as exc:
             raise InvalidFileError(depth_path, f"frame {i} is not a valid RGB-D frame: {exc.message}") from exc  # type: ignore[arg-type]
@@ -354,6 +364,8 @@ class RecordedFrames:
             "depth_scale": self.depth_scale,
             "label_set": self.label_set,
         }
+        if self.depth_range_m is not None:
+            out["depth_range_m"] = self.depth_range_m
         if i is not None:
             out["frame_id"] = str(i)
         return out
@@ -377,6 +389,7 @@ class FramesWriter:
     The colour camera is the rig: extrinsic_color.txt = identity, extrinsic_depth.txt = T_color_depth, and each
     pose/<i>.txt holds T_map_camera (colour camera -> map) as is.
     color_format : "png" (lossless, compress_level=1 for speed) or "jpg" (quality 95, as ScanNet ships).
+    depth_range_m : the depth camera's range (metres), written to frames.json when given (`Frame.depth_range_m`).
     """
 
     def __init__(
@@ -389,6 +402,7 @@ class FramesWriter:
         depth_scale: float = 1000.0,
         label_set: str = "nyu40",
         color_format: Literal["png", "jpg"] = "png",
+        depth_range_m: float | None = None,
         extra_meta: dict | None = None,
     ) -> None:
         self.root = Path(root)
@@ -412,6 +426,7 @@ class FramesWriter:
             "label_set": label_set,
             "depth_size": [depth_intrinsics.width, depth_intrinsics.height],
             "color_size": [color_intrinsics.width, color_intrinsics.height],
+            **({} if depth_range_m is None else {"depth_range_m": float(depth_range_m)}),
             **(extra_meta or {}),
         }
         (self.root / "frames.json").write_text(json.dumps(meta, indent=2))

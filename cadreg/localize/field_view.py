@@ -35,6 +35,20 @@ MAX_STEPS = 96
 # The first occupied cell a ray enters lies before the surface it holds: on the 10-room benchmark's renders the
 # traced depth was 1.5-1.7 cm short of the measured one (median); this much is added back.
 HIT_OFFSET_M = 0.015
+# How far a depth camera whose range the client did not give (`Frame.depth_range_m`) is taken to measure, unless the
+# frame itself measures farther: Kinect v1 and Azure Kinect (narrow, unbinned) about 4 m, a Structure sensor
+# 3.5-4 m, a phone's lidar 5 m; the real 7-Scenes RedKitchen frames reach 2.7-3.6 m. Beyond its range a camera
+# measures nothing whatever is there, so a map surface there on a ray it measured nothing on is no evidence
+# against a pose. Real RedKitchen frames in a building holding two copies of the kitchen fused from other frames
+# of the sequence (the fused kitchen open where its frames never looked): at the true pose the map showed, through
+# those openings, 61 rays' worth of neighbouring rooms 4-6 m away on rays the frame measured nothing on, where the
+# other copy's showed none, and four frames were answered `ok` in the other copy, 5 m off. A render's sensor
+# measures every surface within its cut-off and says so (`RecordedFrames` reads it from frames.json).
+DEFAULT_DEPTH_RANGE_M = 4.0
+# ... and no farther than this, whatever the client says or the frame measured: a depth camera's noise grows with the
+# square of the depth (several centimetres at 4 m for structured light), and a 16-bit depth image's all-ones
+# "no depth" (65.535 m in millimetres) must not read as a surface.
+MAX_DEPTH_RANGE_M = 6.0
 # The field alignment (`align_on_field`) leaves out points where the field's gradient is weaker than this (per
 # metre; 1 on a surface's slope): beyond the truncation, or inside an occupied cell, the field is flat.
 MIN_GRADIENT = 0.1
@@ -44,13 +58,16 @@ class FieldView:
     """The frame's rays (a grid of depth pixels) and the depth measured along each.
 
     frame : the frame the rays come from. grid : (columns, rows) of rays over the depth image. min_depth_m,
-    max_depth_m : the sensor's range (depth along the optical axis): nearer or farther counts as nothing seen.
+    max_depth_m : the sensor's range (depth along the optical axis): nearer or farther counts as nothing seen, in
+    the frame and in the map's renders alike; max_depth_m None: `sensor_range_m(frame)`.
     T_color_depth moves the rays into the colour camera, whose pose (T_map_camera) the renders take.
     """
 
     def __init__(self, frame: Frame, *, grid: tuple[int, int] = (48, 36), min_depth_m: float = 0.4,
-                 max_depth_m: float = 6.0) -> None:
+                 max_depth_m: float | None = None) -> None:
         K = frame.depth_intrinsics
+        if max_depth_m is None:
+            max_depth_m = sensor_range_m(frame)
         cols, rows = grid
         u = ((np.arange(cols) + 0.5) * K.width / cols).astype(np.int64)
         v = ((np.arange(rows) + 0.5) * K.height / rows).astype(np.int64)
@@ -139,6 +156,15 @@ class FieldView:
         z = np.minimum(rendered[both], self.measured[both])
         close = np.abs(rendered[both] - self.measured[both]) < tolerance_m + tolerance_ratio * z
         return float(close.mean()), coverage
+
+
+def sensor_range_m(frame: Frame) -> float:
+    """The farthest depth (metres) at which the frame's camera would have measured a surface: the client's
+    `depth_range_m`, else DEFAULT_DEPTH_RANGE_M, or the farthest depth the frame measured when that is farther;
+    at most MAX_DEPTH_RANGE_M."""
+    measured = float(frame.depth.max()) / frame.depth_scale
+    given = DEFAULT_DEPTH_RANGE_M if frame.depth_range_m is None else frame.depth_range_m
+    return min(max(given, measured), MAX_DEPTH_RANGE_M)
 
 
 def align_on_field(field: DistanceField, points_camera: np.ndarray, R: np.ndarray, t: np.ndarray, *,

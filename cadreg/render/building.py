@@ -364,7 +364,8 @@ def render_building_views(
     repeat = RepeatOracle(renderer, rooms, depth_intr, T_color_depth, config=oracle, noise=noise or NoiseConfig())
     samplers = _RoomSamplers(rooms, config)
     writer = FramesWriter(out_dir, depth_intr, color_intr, T_color_depth, depth_scale=1000.0,
-                          label_set=mesh.label_set, color_format=config.color_format)
+                          label_set=mesh.label_set, color_format=config.color_format,
+                          depth_range_m=None if noise is None else noise.max_depth_m)
     rng = np.random.default_rng(seed)
     out: list[BuildingView] = []
     while len(out) < n:

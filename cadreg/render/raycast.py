@@ -137,8 +137,9 @@ class MeshRenderer:
         """Render a Frame whose colour camera is at T_map_camera (colour -> map).
 
         The depth camera sits at T_map_depth = T_map_camera @ T_color_depth. noise None = noiseless depth and
-        colour (still quantised to the depth unit). `depth_view`: the depth camera's cast at this pose when the
-        caller already has it (with colour when the cameras coincide). Returns (frame, depth view, colour view).
+        colour (still quantised to the depth unit); with noise the frame's `depth_range_m` is the noise model's
+        cut-off. `depth_view`: the depth camera's cast at this pose when the caller already has it (with colour when
+        the cameras coincide). Returns (frame, depth view, colour view).
         """
         T_map_depth = T_map_camera @ T_color_depth
         same = depth_intr == color_intr and np.allclose(T_color_depth, np.eye(4))
@@ -156,6 +157,7 @@ class MeshRenderer:
             depth=depth, color=color, labels=cview.labels,
             depth_intrinsics=depth_intr, color_intrinsics=color_intr, T_color_depth=T_color_depth,
             depth_scale=depth_scale, label_set=self.mesh.label_set, frame_id=frame_id,
+            depth_range_m=None if noise is None else noise.max_depth_m,
         )
         return frame, dview, cview
 
