@@ -107,9 +107,20 @@ class Frame:
         if self.search_region is not None and not isinstance(self.search_region, SearchRegion):
             raise InvalidFrame(f"search_region must be a SearchRegion, got {type(self.search_region).__name__}")
         if self.depth_range_m is not None:
-            r = self.depth_range_m
-            if isinstance(r, bool) or not isinstance(r, (int, float, np.floating)) or not (np.isfinite(r) and r > 0):
-                raise InvalidFrame(f"depth_range_m must be a positive number of metres, got {r!r}")
-            self.depth_range_m = float(r)
+            self.depth_range_m = depth_range_metres(self.depth_range_m)
         if not np.any(d):
             raise InvalidFrame("depth has no valid pixel (all zero)")
+
+
+def depth_range_metres(value: object) -> float:
+    """`value` as a depth camera's range (`Frame.depth_range_m`): a finite positive number of metres, else
+    InvalidFrame."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise InvalidFrame(f"depth_range_m must be a positive number of metres, got {value!r:.40}")
+    try:
+        metres = float(value)
+    except OverflowError:
+        metres = float("inf")
+    if not (np.isfinite(metres) and metres > 0):
+        raise InvalidFrame(f"depth_range_m must be a positive number of metres, got {value!r:.40}")
+    return metres

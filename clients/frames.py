@@ -103,11 +103,10 @@ def encode_recorded(
     """
     rf = frames if isinstance(frames, RecordedFrames) else RecordedFrames.open(frames)
     frame, T_map_camera = rf.load(index)
-    meta = codec.frame_meta(frame, top_k=top_k)
     source = f"{rf.root}:{index}"
     if not raw:
-        enc = encode_frame(frame, top_k=top_k, T_map_camera=T_map_camera)
-        return replace(enc, meta=meta, source=source)
+        return replace(encode_frame(frame, top_k=top_k, T_map_camera=T_map_camera), source=source)
+    meta = codec.frame_meta(frame, top_k=top_k)
     files = rf.read_raw(index)
     wanted = {"color": frame.color, "depth": frame.depth}
     raw_parts = {"color": files.color, "depth": files.depth}

@@ -94,7 +94,7 @@ class FrameMeta(_Wire):
     depth_range_m: WireFloat | None = Field(
         None, gt=0, description="the farthest depth (metres) the depth camera measures a surface at, when known (a "
         "Kinect v1 about 4): in a building, a map surface beyond it on a ray the frame has no depth on is not held "
-        "against a pose; None = 4 m, or the farthest depth the frame measured when that is farther",
+        "against a pose; None = 4 m; either way raised to the farthest depth the frame measured, at most 6 m",
     )
     stamp_s: WireFloat | None = Field(
         None, description="capture time of the frame, seconds on the client's clock: a session's motion is timed by "

@@ -118,7 +118,7 @@ def test_frames_json_overrides(tmp_path: Path) -> None:
     assert frames.depth_scale == 5000.0 and frames.label_set == "scannet20" and frames.depth_range_m == 4.5
     assert frames.load(0)[0].depth_range_m == 4.5 and frames.meta()["depth_range_m"] == 4.5
     assert frames.load(0)[1] is None and frames.pose(0) is None
-    for bad in (0, -1.0, "far", True):
+    for bad in (0, -1.0, "far", True, 10**400):
         (tmp_path / "frames.json").write_text(json.dumps({**meta, "depth_range_m": bad}))
         with pytest.raises(InvalidFileError, match="depth_range_m"):
             RecordedFrames.open(tmp_path)

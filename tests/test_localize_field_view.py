@@ -97,16 +97,23 @@ def test_the_sensor_range_is_the_clients_else_the_default_or_what_the_frame_meas
 
     frame, _ = view_and_pose
     frame = replace(frame, depth=np.where(frame.depth > 3000, 0, frame.depth).astype(np.uint16))
-    farthest = float(frame.depth.max()) / frame.depth_scale
+
+    def range_m(depth_range_m, depth=frame.depth) -> float:
+        return FieldView(replace(frame, depth=depth, depth_range_m=depth_range_m)).max_depth_m
+
+    measured = FieldView(frame, max_depth_m=MAX_DEPTH_RANGE_M).measured
+    farthest = float(measured[np.isfinite(measured)].max())  # along the rays
     assert 2.0 < farthest <= 3.0
-    assert sensor_range_m(replace(frame, depth_range_m=None)) == DEFAULT_DEPTH_RANGE_M
-    assert sensor_range_m(replace(frame, depth_range_m=5.0)) == 5.0
-    assert sensor_range_m(replace(frame, depth_range_m=1.0)) == farthest  # it measured farther than it said
-    assert sensor_range_m(replace(frame, depth_range_m=30.0)) == MAX_DEPTH_RANGE_M
+    assert range_m(None) == DEFAULT_DEPTH_RANGE_M
+    assert range_m(5.0) == 5.0
+    assert range_m(1.0) == farthest  # it measured farther than it said
+    assert range_m(30.0) == MAX_DEPTH_RANGE_M
     far = frame.depth.copy()
-    far[0, 0] = 65535  # a 16-bit "no depth" that is not 0
-    assert sensor_range_m(replace(frame, depth=far, depth_range_m=None)) == MAX_DEPTH_RANGE_M
-    assert FieldView(replace(frame, depth_range_m=None)).max_depth_m == DEFAULT_DEPTH_RANGE_M
+    far[:, : far.shape[1] // 4] = 5500  # a far wall in view: the camera reaches that far
+    assert range_m(None, far) == 5.5
+    far[:, : far.shape[1] // 4] = 65535  # a 16-bit "no depth" that is not 0: no measure of the range
+    assert range_m(None, far) == DEFAULT_DEPTH_RANGE_M
+    assert sensor_range_m(None, np.zeros(10)) == DEFAULT_DEPTH_RANGE_M
 
 
 def test_a_surface_beyond_the_sensors_range_on_a_ray_it_measured_nothing_on_is_not_held_against_a_pose(

@@ -34,7 +34,7 @@ from PIL import Image
 
 from ..camera import CameraIntrinsics
 from ..errors import InvalidArgument, InvalidFileError, InvalidFrame
-from ..frame import Frame
+from ..frame import Frame, depth_range_metres
 from ..geometry import invert_T, nearest_rotation
 
 Layout = Literal["scannet", "7scenes"]
@@ -227,15 +227,15 @@ class RecordedFrames:
                 raise InvalidFrame(f"depth_scale must be positive, got {depth_scale}")
         except (InvalidFrame, TypeError, ValueError) as exc:
             raise InvalidFileError(intr, f"bad camera description ({exc})") from exc
-        depth_range_m = meta.get("depth_range_m")
-        if depth_range_m is not None and (isinstance(depth_range_m, bool) or not isinstance(depth_range_m, (int, float))
-                                          or not (np.isfinite(depth_range_m) and depth_range_m > 0)):
-            raise InvalidFileError(meta_path, f"depth_range_m must be a positive number of metres, got {depth_range_m!r}")
+        try:
+            depth_range_m = None if meta.get("depth_range_m") is None else depth_range_metres(meta["depth_range_m"])
+        except InvalidFrame as exc:
+            raise InvalidFileError(meta_path, exc.message) from exc
         return cls(
             root, "scannet", indices, depth_intr, color_intr,
             T_color_depth=invert_T(T_rig_color) @ T_rig_depth, T_rig_color=T_rig_color,
             depth_scale=depth_scale, label_set=str(meta.get("label_set", "nyu40")), files=files,
-            depth_range_m=None if depth_range_m is None else float(depth_range_m),
+            depth_range_m=depth_range_m,
         )
 
     @classmethod

@@ -46,8 +46,8 @@ HIT_OFFSET_M = 0.015
 # measures every surface within its cut-off and says so (`RecordedFrames` reads it from frames.json).
 DEFAULT_DEPTH_RANGE_M = 4.0
 # ... and no farther than this, whatever the client says or the frame measured: a depth camera's noise grows with the
-# square of the depth (several centimetres at 4 m for structured light), and a 16-bit depth image's all-ones
-# "no depth" (65.535 m in millimetres) must not read as a surface.
+# square of the depth (several centimetres at 4 m for structured light). A depth beyond it is no measure of the
+# range: a 16-bit depth image's all-ones "no depth" (65.535 m in millimetres) would otherwise lift it here.
 MAX_DEPTH_RANGE_M = 6.0
 # The field alignment (`align_on_field`) leaves out points where the field's gradient is weaker than this (per
 # metre; 1 on a surface's slope): beyond the truncation, or inside an occupied cell, the field is flat.
@@ -59,21 +59,22 @@ class FieldView:
 
     frame : the frame the rays come from. grid : (columns, rows) of rays over the depth image. min_depth_m,
     max_depth_m : the sensor's range (depth along the optical axis): nearer or farther counts as nothing seen, in
-    the frame and in the map's renders alike; max_depth_m None: `sensor_range_m(frame)`.
+    the frame and in the map's renders alike; max_depth_m None: `sensor_range_m` of the frame's `depth_range_m` and
+    the depths measured along the rays.
     T_color_depth moves the rays into the colour camera, whose pose (T_map_camera) the renders take.
     """
 
     def __init__(self, frame: Frame, *, grid: tuple[int, int] = (48, 36), min_depth_m: float = 0.4,
                  max_depth_m: float | None = None) -> None:
         K = frame.depth_intrinsics
-        if max_depth_m is None:
-            max_depth_m = sensor_range_m(frame)
         cols, rows = grid
         u = ((np.arange(cols) + 0.5) * K.width / cols).astype(np.int64)
         v = ((np.arange(rows) + 0.5) * K.height / rows).astype(np.int64)
         uu, vv = np.meshgrid(u, v)
         uu, vv = uu.ravel(), vv.ravel()
         z = frame.depth[vv, uu].astype(np.float64) / frame.depth_scale
+        if max_depth_m is None:
+            max_depth_m = sensor_range_m(frame.depth_range_m, z)
         self.measured = np.where((z >= min_depth_m) & (z <= max_depth_m), z, np.inf)  # (r,) depth along z
         d = np.stack([(uu - K.cx) / K.fx, (vv - K.cy) / K.fy, np.ones(len(uu))], axis=1)  # z = 1 in depth frame
         T = np.asarray(frame.T_color_depth, dtype=np.float64)
@@ -158,13 +159,14 @@ class FieldView:
         return float(close.mean()), coverage
 
 
-def sensor_range_m(frame: Frame) -> float:
-    """The farthest depth (metres) at which the frame's camera would have measured a surface: the client's
-    `depth_range_m`, else DEFAULT_DEPTH_RANGE_M, or the farthest depth the frame measured when that is farther;
-    at most MAX_DEPTH_RANGE_M."""
-    measured = float(frame.depth.max()) / frame.depth_scale
-    given = DEFAULT_DEPTH_RANGE_M if frame.depth_range_m is None else frame.depth_range_m
-    return min(max(given, measured), MAX_DEPTH_RANGE_M)
+def sensor_range_m(given_m: float | None, measured_m: np.ndarray) -> float:
+    """The farthest depth (metres) at which a frame's camera would have measured a surface: the client's range
+    (given_m, `Frame.depth_range_m`), else DEFAULT_DEPTH_RANGE_M, or the farthest of the depths measured along the
+    view's rays (measured_m, metres, 0 = none) when that is farther; at most MAX_DEPTH_RANGE_M, and a depth beyond
+    it is no measure. Along the rays, not over every pixel: a stray far pixel moves it only where a ray meets it."""
+    within = measured_m[(measured_m > 0) & (measured_m <= MAX_DEPTH_RANGE_M)]
+    reach = float(within.max()) if len(within) else 0.0
+    return min(max(DEFAULT_DEPTH_RANGE_M if given_m is None else given_m, reach), MAX_DEPTH_RANGE_M)
 
 
 def align_on_field(field: DistanceField, points_camera: np.ndarray, R: np.ndarray, t: np.ndarray, *,

@@ -56,6 +56,7 @@ from ..site.compose import CorridorEntry, Layout, copy_changes, inside_boxes
 from ..site.corridor import corridor_panels, panel_grid
 from ..site.graph import ObjectNode
 from .mesh import LabelledMesh
+from .noise import depth_range_m
 from .poses import PoseSampler
 from .raycast import MeshRenderer, camera_rig, pixel_rays
 from .sequence import count_visible_objects
@@ -365,7 +366,7 @@ def render_building_views(
     samplers = _RoomSamplers(rooms, config)
     writer = FramesWriter(out_dir, depth_intr, color_intr, T_color_depth, depth_scale=1000.0,
                           label_set=mesh.label_set, color_format=config.color_format,
-                          depth_range_m=None if noise is None else noise.max_depth_m)
+                          depth_range_m=depth_range_m(noise))
     rng = np.random.default_rng(seed)
     out: list[BuildingView] = []
     while len(out) < n:

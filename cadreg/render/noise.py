@@ -13,6 +13,12 @@ from ..camera import axial_noise_sigma_m
 from ..config import NoiseConfig
 
 
+def depth_range_m(noise: NoiseConfig | None) -> float | None:
+    """The range a frame rendered with `noise` says its camera has (`Frame.depth_range_m`): the model's cut-off;
+    None without noise (a noiseless render measures every surface, however far)."""
+    return None if noise is None else noise.max_depth_m
+
+
 def axial_sigma_m(z_m: np.ndarray, config: NoiseConfig = NoiseConfig()) -> np.ndarray:
     """σ of the depth noise (metres) at depth z_m (metres), elementwise."""
     return axial_noise_sigma_m(z_m, config.axial_a_m, config.axial_b_per_m, config.axial_z0_m)

@@ -18,7 +18,7 @@ from ..errors import InvalidArgument
 from ..frame import Frame
 from ..geometry import make_T
 from .mesh import LabelledMesh
-from .noise import apply_color_noise, apply_depth_noise
+from .noise import apply_color_noise, apply_depth_noise, depth_range_m
 
 # ScanNet's colour camera (1296x968); other colour sizes are scaled from it.
 SCANNET_COLOR = CameraIntrinsics(1296, 968, 1170.187988, 1170.187988, 647.750000, 483.750000)
@@ -157,7 +157,7 @@ class MeshRenderer:
             depth=depth, color=color, labels=cview.labels,
             depth_intrinsics=depth_intr, color_intrinsics=color_intr, T_color_depth=T_color_depth,
             depth_scale=depth_scale, label_set=self.mesh.label_set, frame_id=frame_id,
-            depth_range_m=None if noise is None else noise.max_depth_m,
+            depth_range_m=depth_range_m(noise),
         )
         return frame, dview, cview
 

@@ -12,6 +12,7 @@ from ..config import NoiseConfig, RenderConfig
 from ..errors import ConfigError, InvalidFrame
 from ..io.frames import FramesWriter
 from .mesh import LabelledMesh
+from .noise import depth_range_m
 from .poses import PoseSampler
 from .raycast import MeshRenderer, View, camera_rig
 
@@ -67,7 +68,7 @@ def render_frames(
     sampler = PoseSampler(renderer, config) if poses is None else None
     writer = FramesWriter(
         out_dir, depth_intr, color_intr, T_color_depth, depth_scale=1000.0, label_set=mesh.label_set,
-        color_format=config.color_format, depth_range_m=None if noise is None else noise.max_depth_m,
+        color_format=config.color_format, depth_range_m=depth_range_m(noise),
     )
     min_z = noise.min_depth_m if noise is not None else 0.0
     max_z = noise.max_depth_m if noise is not None else np.inf
