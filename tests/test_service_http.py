@@ -136,6 +136,7 @@ BAD_INPUTS = {
     "negative focal length": dict(meta_override={"depth_intrinsics": {"fx": -500.0, "fy": 500.0, "cx": 319.5, "cy": 239.5}}),
     "unknown meta field": dict(meta_override={"exposure_ms": 3}),
     "top_k out of range": dict(meta_override={"top_k": 99}),
+    "depth range not positive": dict(meta_override={"depth_range_m": 0.0}),
     "missing depth": dict(drop=("depth",)),
     "missing meta": dict(drop=("meta",)),
 }
