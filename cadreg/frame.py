@@ -36,7 +36,8 @@ class Frame:
     search_region : where the client says the camera is (a ball in the map frame, or region ids): hypotheses
         elsewhere are not considered.
     depth_range_m : the farthest depth (metres, along the optical axis) the depth camera measures a surface at, when
-        the client knows it (a Kinect v1 about 4, a render its cut-off); None: not known (`sensor_range_m`).
+        the client knows it (a Kinect v1 about 4, a render its cut-off); None: not known (`localize.field_view`
+        takes 4 m, or what the frame shows it reaches: `sensor_range_m`).
     """
 
     depth: np.ndarray
