@@ -858,22 +858,15 @@ def exact_copies(scene0470_site_dir: Path, scene0470_dir: Path, tmp_path_factory
     """(site dir, frame, T_map_camera) of two exact copies of the scene0470 room, "b" 6 m along x from "a", and a
     view from room "a" along x, over its far wall (1.37 m high), rendered from the building (Kinect-like noise, a
     6 m cut-off): room "b" lies 5.4-6 m from the camera."""
-    import json
-
     from cadreg.io.frames import RecordedFrames
     from cadreg.render import LabelledMesh, render_frames
     from cadreg.render.building import building_mesh, building_rooms
-    from cadreg.site.compose import compose_site, read_layout
-    from tracking_rooms import ROOM_B_OFFSET_M, look_at
+    from cadreg.site.compose import read_layout
+    from tracking_rooms import look_at, twin_site
 
     out = tmp_path_factory.mktemp("exact-copies")
-    moved = np.eye(4)
-    moved[0, 3] = ROOM_B_OFFSET_M
-    (out / "LAYOUT.json").write_text(json.dumps({"site_id": "copies", "rooms": [
-        {"name": "a", "bundle": str(scene0470_site_dir), "T_building_room": np.eye(4).tolist()},
-        {"name": "b", "bundle": str(scene0470_site_dir), "T_building_room": moved.tolist()}]}))
+    site_dir = twin_site(scene0470_site_dir, out, dropped=[])
     layout = read_layout(out / "LAYOUT.json")
-    compose_site(layout, out).save(out / "site")
     mesh = LabelledMesh.from_ply(scene0470_dir / "scene0470_00_vh_clean_2.ply",
                                  scene0470_dir / "scene0470_00_vh_clean_2.labels.ply")
     nodes = Site.load(scene0470_site_dir).graph.nodes
@@ -881,7 +874,7 @@ def exact_copies(scene0470_site_dir: Path, scene0470_dir: Path, tmp_path_factory
     T = look_at(np.array([0.6, 1.5, 1.7]), np.array([3.5, 1.4, 1.3]))
     render_frames(building_mesh(rooms), out / "view", 0, poses=[T], seed=0)
     frame, T_map_camera = RecordedFrames.open(out / "view").load(0)
-    return out / "site", frame, T_map_camera
+    return site_dir, frame, T_map_camera
 
 
 @pytest.mark.parametrize("labels", [True, False])

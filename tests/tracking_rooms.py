@@ -43,8 +43,8 @@ def turning_poses(n: int) -> list[np.ndarray]:
     return [look_at(CAMERA_M, LOOK_FROM_M + (LOOK_TO_M - LOOK_FROM_M) * k / (n - 1)) for k in range(n)]
 
 
-def write_layout(room_dir: Path, out: Path) -> Path:
-    """The LAYOUT.json of the two rooms (room "b" moved by ROOM_B_OFFSET_M along x, without DROPPED)."""
+def write_layout(room_dir: Path, out: Path, dropped: list[str] = DROPPED) -> Path:
+    """The LAYOUT.json of the two rooms (room "b" moved by ROOM_B_OFFSET_M along x, without `dropped`)."""
     layout = out / "LAYOUT.json"
     layout.parent.mkdir(parents=True, exist_ok=True)
     eye = np.eye(4)
@@ -52,16 +52,17 @@ def write_layout(room_dir: Path, out: Path) -> Path:
     moved[0, 3] = ROOM_B_OFFSET_M
     layout.write_text(json.dumps({"site_id": "twin-rooms", "rooms": [
         {"name": "a", "bundle": str(room_dir), "T_building_room": eye.tolist()},
-        {"name": "b", "bundle": str(room_dir), "T_building_room": moved.tolist(), "drop_objects": DROPPED},
+        {"name": "b", "bundle": str(room_dir), "T_building_room": moved.tolist(), "drop_objects": dropped},
     ]}))
     return layout
 
 
-def twin_site(room_dir: Path, out: Path) -> Path:
-    """Compose and save the two-room site (site id "twin-rooms"); returns its bundle directory."""
+def twin_site(room_dir: Path, out: Path, dropped: list[str] = DROPPED) -> Path:
+    """Compose and save the two-room site (site id "twin-rooms", room "b" without `dropped`; its LAYOUT.json in
+    `out`); returns its bundle directory."""
     from cadreg.site.compose import compose_site, read_layout
 
-    layout = write_layout(room_dir, out)
+    layout = write_layout(room_dir, out, dropped)
     site_dir = out / "sites" / "twin-rooms"
     compose_site(read_layout(layout), layout.parent).save(site_dir)
     return site_dir
