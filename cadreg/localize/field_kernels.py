@@ -224,7 +224,9 @@ def align(grid, scale, origin, voxel, hi, strides, points, R, t, up, turn_about_
                 w = (q[i, 2] - origin[2]) * inv + 1.0
                 for o in range(7):  # the cells first, then the reads (`score_poses`)
                     cells[i, o] = _cell_of_units(hi, strides, u + offsets[o, 0], v + offsets[o, 1], w + offsets[o, 2])
-            H = np.eye(dof) * 1e-6
+            H = np.zeros((dof, dof))
+            for u in range(dof):
+                H[u, u] = 1e-6
             b = np.zeros(dof)
             used = 0
             for i in range(m):
@@ -252,25 +254,79 @@ def align(grid, scale, origin, voxel, hi, strides, points, R, t, up, turn_about_
                         H[u, v] += J[u] * J[v]
             if used < 3 * dof:  # too few points within reach: the pose stays
                 continue
-            step = -np.linalg.solve(H, b)
+            minus_step = _solve_positive_definite(H, b)  # the Gauss-Newton step is -H⁻¹ b
             if turn_about_up:
-                wx, wy, wz = step[0] * up[0], step[0] * up[1], step[0] * up[2]
+                wx, wy, wz = -minus_step[0] * up[0], -minus_step[0] * up[1], -minus_step[0] * up[2]
             else:
-                wx, wy, wz = step[0], step[1], step[2]
+                wx, wy, wz = -minus_step[0], -minus_step[1], -minus_step[2]
             dR = _rotation(wx, wy, wz)
-            r_[:, :] = dR @ r_
-            s[:] = dR @ s + step[dof - 3:]
+            _turn_in_place(dR, r_)
+            _turn_in_place(dR, s.reshape((3, 1)))
+            for a in range(3):
+                s[a] -= minus_step[dof - 3 + a]
 
 
 @njit(cache=True, nogil=True)
 def _rotation(wx, wy, wz):
-    """The rotation (3, 3) of the rotation vector (wx, wy, wz) (Rodrigues)."""
+    """The rotation (3, 3) of the rotation vector (wx, wy, wz) (Rodrigues), I + sin θ K + (1 - cos θ) K², element by
+    element (see below)."""
     theta = math.sqrt(wx * wx + wy * wy + wz * wz)
-    K = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
+    K = np.empty((3, 3))
+    K[0, 0], K[0, 1], K[0, 2] = 0.0, -wz, wy
+    K[1, 0], K[1, 1], K[1, 2] = wz, 0.0, -wx
+    K[2, 0], K[2, 1], K[2, 2] = -wy, wx, 0.0
+    R = np.empty((3, 3))
     if theta < 1e-12:
-        return np.eye(3) + K
-    K /= theta
-    return np.eye(3) + math.sin(theta) * K + (1.0 - math.cos(theta)) * (K @ K)
+        for a in range(3):
+            for c in range(3):
+                R[a, c] = (1.0 if a == c else 0.0) + K[a, c]
+        return R
+    for a in range(3):
+        for c in range(3):
+            K[a, c] /= theta
+    sin, one_less_cos = math.sin(theta), 1.0 - math.cos(theta)
+    for a in range(3):
+        for c in range(3):
+            K2 = K[a, 0] * K[0, c] + K[a, 1] * K[1, c] + K[a, 2] * K[2, c]
+            R[a, c] = (1.0 if a == c else 0.0) + sin * K[a, c] + one_less_cos * K2
+    return R
+
+
+# `align`'s small linear algebra by hand, as loops, and why: numba compiles its bindings of np.linalg.solve and of
+# the matrix product, and each array expression, for each module that uses them: 7 of the 26 s a cold cache's first
+# start took (a fresh install's first server or demo), for a 6 x 6 system and 3 x 3 products.
+@njit(cache=True, nogil=True)
+def _turn_in_place(A, B):
+    """B (3, n) <- A (3, 3) @ B, column by column."""
+    for c in range(B.shape[1]):
+        b0, b1, b2 = B[0, c], B[1, c], B[2, c]
+        for a in range(3):
+            B[a, c] = A[a, 0] * b0 + A[a, 1] * b1 + A[a, 2] * b2
+
+
+@njit(cache=True, nogil=True)
+def _solve_positive_definite(H, b):
+    """x with H x = b, H (n, n) symmetric positive definite (a Gauss-Newton system with its damping), by Cholesky."""
+    n = len(b)
+    L = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            acc = H[i, j]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            L[i, j] = math.sqrt(acc) if i == j else acc / L[j, j]
+    x = np.empty(n)
+    for i in range(n):  # L y = b
+        acc = b[i]
+        for k in range(i):
+            acc -= L[i, k] * x[k]
+        x[i] = acc / L[i, i]
+    for i in range(n - 1, -1, -1):  # Lᵀ x = y
+        acc = x[i]
+        for k in range(i + 1, n):
+            acc -= L[k, i] * x[k]
+        x[i] = acc / L[i, i]
+    return x
 
 
 @njit(cache=True, nogil=True)
@@ -322,10 +378,17 @@ def child_sums(grid, offsets, strides, hi, step, rows, cells, out_rows, out_cell
     return count
 
 
-def warm() -> None:
-    """Compile (or load from numba's cache) every loop for both kinds of grid, so that no frame pays for it: a
-    first compilation takes seconds, a cached one a fraction of one."""
-    for grid in (np.zeros(27, dtype=np.uint8), np.zeros(27, dtype=np.float32)):
+# The kinds of grid a distance field holds: a stored (building's) field quantized to bytes, a one-room field built
+# at load in metres. The label-free search's pyramid is bytes either way.
+FIELD_DTYPES = (np.uint8, np.float32)
+
+
+def warm(field_dtypes=FIELD_DTYPES) -> None:
+    """Compile (or load from numba's cache) every loop for the kinds of grid given (`FIELD_DTYPES`: those a site's
+    field may hold), so that no frame pays for it: a first compilation takes seconds, a cached one a fraction of
+    one."""
+    for dtype in field_dtypes:
+        grid = np.zeros(27, dtype=dtype)
         args = (read_only(grid), 1.0, np.zeros(3), 1.0, np.full(3, 2.0), np.array([9, 3, 1], dtype=np.int64))
         one = np.zeros(1)
         lookup(*args, one, one, one, np.empty(1, dtype=np.float32))
@@ -335,10 +398,11 @@ def warm() -> None:
         if grid.dtype == np.uint8:
             score_poses(*args, p, R, rot, t, 0.1, quantized_scores(1.0, 0.1), np.empty(1))
         trace(*args, R, t, np.zeros(3), np.array([[0.0, 0.0, 1.0]]), 0.5, 1.0, 0.1, 0.1, 4, 0.0, np.empty((1, 1)))
-        sums_at(args[0], np.zeros((1, 1), dtype=np.int64), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
-                np.empty(1, dtype=np.int64))
-        child_sums(args[0], np.zeros((1, 1), dtype=np.int64), args[5], np.ones(3, dtype=np.int64), 1,
-                   np.zeros(1, dtype=np.int64), np.zeros((1, 3), dtype=np.int64), np.empty(8, dtype=np.int64),
-                   np.empty((8, 3), dtype=np.int64), np.empty(8, dtype=np.int64))
         for about_up in (True, False):
             align(*args, p, R.copy(), t.copy(), np.array([0.0, 0.0, 1.0]), about_up, 1, 0.5, 0.1, 0.1)
+    pyramid = read_only(np.zeros(27, dtype=np.uint8))
+    sums_at(pyramid, np.zeros((1, 1), dtype=np.int64), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
+            np.empty(1, dtype=np.int64))
+    child_sums(pyramid, np.zeros((1, 1), dtype=np.int64), np.array([9, 3, 1], dtype=np.int64),
+               np.ones(3, dtype=np.int64), 1, np.zeros(1, dtype=np.int64), np.zeros((1, 3), dtype=np.int64),
+               np.empty(8, dtype=np.int64), np.empty((8, 3), dtype=np.int64), np.empty(8, dtype=np.int64))

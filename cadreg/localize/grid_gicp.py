@@ -18,6 +18,7 @@ what small_gicp's does.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -178,11 +179,13 @@ def _normals(xyz, nn, out):
 def _least_axis(C, out):
     """out <- the unit eigenvector of the symmetric 3 x 3 C with the least eigenvalue: the eigenvalue in closed
     form (the trigonometric solution of the characteristic cubic), the vector as the largest cross product of two
-    rows of C - λ I; LAPACK's eigh where those vanish (no single least axis). A fraction of eigh's cost."""
+    rows of C - λ I. Where those vanish there is no single least axis: `_any_least_axis`. A fraction of LAPACK
+    eigh's cost, and no eigh to compile (a second of a cold cache's first start)."""
     q = (C[0, 0] + C[1, 1] + C[2, 2]) / 3.0
     p1 = C[0, 1] ** 2 + C[0, 2] ** 2 + C[1, 2] ** 2
     p2 = (C[0, 0] - q) ** 2 + (C[1, 1] - q) ** 2 + (C[2, 2] - q) ** 2 + 2.0 * p1
     p = np.sqrt(p2 / 6.0)
+    least = q
     if p > 1e-12 * abs(q):
         b00, b11, b22 = (C[0, 0] - q) / p, (C[1, 1] - q) / p, (C[2, 2] - q) / p
         b01, b02, b12 = C[0, 1] / p, C[0, 2] / p, C[1, 2] / p
@@ -205,8 +208,39 @@ def _least_axis(C, out):
             size = np.sqrt(size)
             out[0], out[1], out[2] = wx / size, wy / size, wz / size
             return
-    _, U = np.linalg.eigh(C)
-    out[:] = U[:, 0]
+    _any_least_axis(C, least, out)
+
+
+@njit(cache=True, nogil=True)
+def _any_least_axis(C, least, out):
+    """out <- a unit vector of the least eigenvalue's eigenspace of the symmetric 3 x 3 C where that is a plane or
+    all of space (points on a line, or all alike: no surface normal to find, any will do). The rows of C - least I
+    then lie along one direction a: the unit vector across a, a × the axis a is least along; where they all vanish
+    (C is least I), the axis of C's least diagonal entry, as LAPACK's eigh returns for C = 0."""
+    ax = ay = az = 0.0  # the row of C - least I farthest from naught
+    size = 0.0
+    for i in range(3):
+        rx, ry, rz = C[i, 0] - least * (i == 0), C[i, 1] - least * (i == 1), C[i, 2] - least * (i == 2)
+        n = rx * rx + ry * ry + rz * rz
+        if n > size:
+            ax, ay, az, size = rx, ry, rz, n
+    k = 0
+    if size == 0.0:  # C is least I: its least diagonal entry's axis
+        for i in range(1, 3):
+            if C[i, i] < C[k, k]:
+                k = i
+    else:  # the axis a is least along: a × it is well away from naught
+        if abs(ay) < abs(ax):
+            k = 1
+        if abs(az) < min(abs(ax), abs(ay)):
+            k = 2
+    out[0] = out[1] = out[2] = 0.0
+    out[k] = 1.0
+    if size == 0.0:
+        return
+    wx, wy, wz = ay * out[2] - az * out[1], az * out[0] - ax * out[2], ax * out[1] - ay * out[0]
+    size = math.sqrt(wx * wx + wy * wy + wz * wz)
+    out[0], out[1], out[2] = wx / size, wy / size, wz / size
 
 
 @njit(cache=True, nogil=True)
@@ -244,8 +278,11 @@ def _linearize(src, src_normals, tgt, tgt_normals, nn, found, R, t, eps, H, b, M
         M[1, 2] = C[0, 2] * C[1, 0] - C[0, 0] * C[1, 2]
         M[2, 2] = C[0, 0] * C[1, 1] - C[0, 1] * C[1, 0]
         M[1, 0], M[2, 0], M[2, 1] = M[0, 1], M[0, 2], M[1, 2]
-        M /= C[0, 0] * M[0, 0] + C[0, 1] * M[1, 0] + C[0, 2] * M[2, 0]
-        Ms[i] = M
+        det = C[0, 0] * M[0, 0] + C[0, 1] * M[1, 0] + C[0, 2] * M[2, 0]
+        for a in range(3):  # (as loops: an array expression costs numba seconds to compile, a cold cache's start)
+            for c in range(3):
+                M[a, c] /= det
+                Ms[i, a, c] = M[a, c]
         # J = [R [p]x, -R]: column k of R [p]x is R (p x e_k)
         x, y, z = src[i, 0], src[i, 1], src[i, 2]
         for a in range(3):

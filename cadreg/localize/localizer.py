@@ -103,11 +103,11 @@ TOP_PERCENTILE = 98
 MAX_SEEN_FROM_BEHIND = 0.8
 
 
-def compile_loops() -> None:
-    """Compile (or load from numba's cache) every compiled loop the localizer runs: `Localizer.warm` at a server's
-    start, the Dockerfile at build time."""
-    for module in (cluster, field_kernels, frame_points, gravity, grid_gicp, match, point_tree, room_twins,
-                   view_kernels):
+def compile_loops(field_dtypes=field_kernels.FIELD_DTYPES) -> None:
+    """Compile (or load from numba's cache) every compiled loop the localizer runs, the field's for the kinds of
+    grid given: `Localizer.warm` at a server's start (its site's kind), the Dockerfile at build time (both)."""
+    field_kernels.warm(field_dtypes)
+    for module in (cluster, frame_points, gravity, grid_gicp, match, point_tree, room_twins, view_kernels):
         module.warm()
 
 
@@ -216,7 +216,7 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         # the whole map in every worker: built on first use there.
         if self.config.fallback.enabled and len(self.maps) == 1:
             self.fpfh()
-        compile_loops()
+        compile_loops((self.field.grid.dtype.type,))
         if self.twins is not None:
             # after the loops are compiled: the budget is for the rows, not for the RANSAC's compilation
             self.twins.warm(TWINS_WARM_S)

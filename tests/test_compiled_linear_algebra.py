@@ -1,0 +1,47 @@
+"""The small linear algebra the compiled loops do by hand (numba's np.linalg bindings and array expressions cost
+seconds of a cold cache's first start): each against numpy or scipy, and the normals of neighbourhoods with no
+single least axis."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from cadreg.localize.field_kernels import _rotation, _solve_positive_definite, _turn_in_place
+from cadreg.localize.grid_gicp import _least_axis
+
+
+@pytest.mark.parametrize("n", [4, 6])
+def test_a_positive_definite_system_is_solved_as_numpy_solves_it(n) -> None:
+    rng = np.random.default_rng(n)
+    for _ in range(20):
+        J = rng.normal(size=(50, n)) * rng.uniform(0.01, 10.0, n)  # columns of very different scales, as x, y, yaw
+        H, b = J.T @ J + 1e-6 * np.eye(n), rng.normal(size=n)
+        np.testing.assert_allclose(_solve_positive_definite(H, b), np.linalg.solve(H, b), rtol=1e-9, atol=1e-12)
+
+
+def test_a_rotation_vector_turns_as_scipys_and_products_are_numpys() -> None:
+    rng = np.random.default_rng(3)
+    for w in [*rng.normal(size=(20, 3)), np.array([0.0, 0.0, np.pi - 1e-9]), np.array([2e-13, 0.0, 0.0])]:
+        R = _rotation(*w)
+        np.testing.assert_allclose(R, Rotation.from_rotvec(w).as_matrix(), atol=1e-12)
+    A, B = rng.normal(size=(3, 3)), rng.normal(size=(3, 5))
+    AB = A @ B
+    _turn_in_place(A, B)
+    np.testing.assert_allclose(B, AB, atol=1e-14)
+
+
+@pytest.mark.parametrize("name, C", [
+    ("alike", np.zeros((3, 3))),                                  # a neighbourhood of one point, repeated
+    ("round", 2.0 * np.eye(3)),
+    ("line along x", np.diag([3.0, 0.0, 0.0])),
+    ("line", 5.0 * np.outer([1.0, 2.0, 3.0], [1.0, 2.0, 3.0]) / 14.0),
+    ("line, two least alike", np.diag([3.0, 1.0, 1.0])),
+    ("plane", np.diag([3.0, 2.0, 0.0])),
+    ("scatter", (lambda X: X.T @ X)(np.random.default_rng(0).normal(size=(10, 3)))),
+])
+def test_the_least_axis_is_a_unit_eigenvector_of_the_least_eigenvalue(name, C) -> None:
+    out = np.full(3, np.nan)
+    _least_axis(C, out)
+    least = np.linalg.eigvalsh(C)[0]
+    assert np.isclose(np.linalg.norm(out), 1.0), name
+    np.testing.assert_allclose(C @ out, least * out, atol=1e-7 * max(1.0, np.abs(C).max()), err_msg=name)
