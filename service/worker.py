@@ -72,7 +72,7 @@ class _Sites:
         try:
             if len(site.map) == 0:
                 raise ValueError("map.ply has no points")
-            localizer = Localizer.from_site(site, self.config).warm()
+            localizer = Localizer.from_site(site, self.config).warm(compile_last_first=_slot() % 2 == 1)
         except CadregError:
             raise
         except Exception as exc:
@@ -104,6 +104,14 @@ class _Sites:
 
     def loaded(self) -> list[list[str]]:
         return [[sid, v] for sid, versions in self.by_site.items() for v in versions]
+
+
+def _slot() -> int:
+    """This worker's slot in the pool (its process name's number; 0 outside a pool's worker): workers of odd and
+    even slots compile the localizer's loops from opposite ends (`compile_loops`)."""
+    name = multiprocessing.current_process().name
+    number = name.rsplit("-", 1)[-1]
+    return int(number) if name.startswith(WORKER_NAME_PREFIX) and number.isdigit() else 0
 
 
 def _error_body(exc: BaseException) -> dict[str, Any]:

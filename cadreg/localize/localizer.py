@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 import small_gicp
@@ -103,12 +104,17 @@ TOP_PERCENTILE = 98
 MAX_SEEN_FROM_BEHIND = 0.8
 
 
-def compile_loops(field_dtypes=field_kernels.FIELD_DTYPES) -> None:
+def compile_loops(field_dtypes=field_kernels.FIELD_DTYPES, *, last_first: bool = False) -> None:
     """Compile (or load from numba's cache) every compiled loop the localizer runs, the field's for the kinds of
-    grid given: `Localizer.warm` at a server's start (its site's kind), the Dockerfile at build time (both)."""
-    field_kernels.warm(field_dtypes)
-    for module in (cluster, frame_points, gravity, grid_gicp, match, point_tree, room_twins, view_kernels):
-        module.warm()
+    grid given: `Localizer.warm` at a server's start (its site's kind), the Dockerfile at build time (both).
+    last_first: module by module in the reverse order. A server's workers start together: on a cold cache (a fresh
+    install's first start) two that begin at opposite ends find, by the middle, what the other has compiled in the
+    cache, and each compiles about half."""
+    steps = [partial(field_kernels.warm, field_dtypes)]
+    steps += [module.warm for module in (cluster, frame_points, gravity, grid_gicp, match, point_tree, room_twins,
+                                         view_kernels)]
+    for step in reversed(steps) if last_first else steps:
+        step()
 
 
 class Localizer(RefineStage, BuildingViews, FallbackStage):
@@ -203,10 +209,10 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
             raise InvalidArgument("a site of several regions has a free-space check per region: use maps_at")
         return self.maps.index(self.maps.regions[0]).view_check
 
-    def warm(self) -> "Localizer":
+    def warm(self, *, compile_last_first: bool = False) -> "Localizer":
         """Build now what is otherwise built on first use (the map's FPFH features for the fallback, about a second
-        a site; the compiled loops, `compile_loops`), so that a long-running server does not make its first requests
-        pay for it."""
+        a site; the compiled loops, `compile_loops`, in the reverse order if compile_last_first), so that a
+        long-running server does not make its first requests pay for it."""
         if len(self.maps) == 1:
             self.refine_map.fine_target()
             self.refine_map.wide_voxels(self.config.refine.wide_voxel_m)
@@ -216,7 +222,7 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         # the whole map in every worker: built on first use there.
         if self.config.fallback.enabled and len(self.maps) == 1:
             self.fpfh()
-        compile_loops((self.field.grid.dtype.type,))
+        compile_loops((self.field.grid.dtype.type,), last_first=compile_last_first)
         if self.twins is not None:
             # after the loops are compiled: the budget is for the rows, not for the RANSAC's compilation
             self.twins.warm(TWINS_WARM_S)

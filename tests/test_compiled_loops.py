@@ -1,13 +1,17 @@
-"""The small linear algebra the compiled loops do by hand (numba's np.linalg bindings and array expressions cost
-seconds of a cold cache's first start): each against numpy or scipy, and the normals of neighbourhoods with no
-single least axis."""
+"""The compiled loops: the small linear algebra they do by hand (numba's np.linalg bindings and array expressions
+cost seconds of a cold cache's first start), each against numpy or scipy, with the normals of neighbourhoods that
+have no single least axis; and the order a server's workers compile them in."""
+
+import multiprocessing
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from cadreg.localize import localizer
 from cadreg.localize.field_kernels import _rotation, _solve_positive_definite, _turn_in_place
 from cadreg.localize.grid_gicp import _least_axis
+from service import worker
 
 
 @pytest.mark.parametrize("n", [4, 6])
@@ -45,3 +49,18 @@ def test_the_least_axis_is_a_unit_eigenvector_of_the_least_eigenvalue(name, C) -
     least = np.linalg.eigvalsh(C)[0]
     assert np.isclose(np.linalg.norm(out), 1.0), name
     np.testing.assert_allclose(C @ out, least * out, atol=1e-7 * max(1.0, np.abs(C).max()), err_msg=name)
+
+
+def test_workers_of_odd_slots_compile_from_the_other_end(monkeypatch) -> None:
+    calls = []
+    monkeypatch.setattr(localizer.field_kernels, "warm", lambda dtypes: calls.append(("field_kernels", dtypes)))
+    for module in (localizer.cluster, localizer.view_kernels):
+        monkeypatch.setattr(module, "warm", lambda name=module.__name__: calls.append((name, None)))
+    localizer.compile_loops((np.uint8,))
+    forward, calls[:] = list(calls), []
+    localizer.compile_loops((np.uint8,), last_first=True)
+    assert calls == forward[::-1] and forward[0] == ("field_kernels", (np.uint8,))
+    assert forward[1] == ("cadreg.localize.cluster", None) and forward[-1] == ("cadreg.localize.view_kernels", None)
+    for name, slot in [("cadreg-worker-0", 0), ("cadreg-worker-3", 3), ("MainProcess", 0), ("cadreg-worker-x", 0)]:
+        monkeypatch.setattr(multiprocessing.current_process(), "name", name)
+        assert worker._slot() == slot
