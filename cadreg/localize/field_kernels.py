@@ -378,6 +378,22 @@ def child_sums(grid, offsets, strides, hi, step, rows, cells, out_rows, out_cell
     return count
 
 
+@njit(cache=True, nogil=True)
+def occupied_cubes(grid, dims, threshold, thin, blocks, out):
+    """out[c] <- True for each cube c of thin³ cells (flat, C order over `blocks` = ceil(dims / thin) cubes a side)
+    that holds a cell of the grid (dims (3,) cells a side, border included) at most `threshold`:
+    `DistanceField.surface_points` in one pass over the grid. numpy's mask, cell indices and unique over them took
+    1.9 s of a 100-room worker's start."""
+    for i in range(dims[0]):
+        ci = (i // thin) * blocks[1]
+        for j in range(dims[1]):
+            cj = (ci + j // thin) * blocks[2]
+            row = (i * dims[1] + j) * dims[2]
+            for k in range(dims[2]):
+                if grid[row + k] <= threshold:
+                    out[cj + k // thin] = True
+
+
 # The kinds of grid a distance field holds: a stored (building's) field quantized to bytes, a one-room field built
 # at load in metres. The label-free search's pyramid is bytes either way.
 FIELD_DTYPES = (np.uint8, np.float32)
@@ -400,6 +416,8 @@ def warm(field_dtypes=FIELD_DTYPES) -> None:
         trace(*args, R, t, np.zeros(3), np.array([[0.0, 0.0, 1.0]]), 0.5, 1.0, 0.1, 0.1, 4, 0.0, np.empty((1, 1)))
         for about_up in (True, False):
             align(*args, p, R.copy(), t.copy(), np.array([0.0, 0.0, 1.0]), about_up, 1, 0.5, 0.1, 0.1)
+        occupied_cubes(args[0], np.full(3, 3, dtype=np.int64), 0.5, 2, np.full(3, 2, dtype=np.int64),
+                       np.zeros(8, dtype=np.bool_))
     pyramid = read_only(np.zeros(27, dtype=np.uint8))
     sums_at(pyramid, np.zeros((1, 1), dtype=np.int64), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
             np.empty(1, dtype=np.int64))
