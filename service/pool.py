@@ -386,7 +386,7 @@ class WorkerPool:
         sites = sorted(self._sites.items())
         process = self._ctx.Process(
             target=worker_main,
-            args=(child_conn, sites, self._localize_config, self._test_hooks),
+            args=(child_conn, sites, self._localize_config, self._test_hooks, w.slot),
             name=f"{WORKER_NAME_PREFIX}-{w.slot}",
             daemon=True,
         )

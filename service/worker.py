@@ -4,7 +4,7 @@ Runs in a "spawn" child (Open3D and threads do not mix with fork). Numeric libra
 variables below are set before numpy/open3d are imported in this process, which is why the heavy imports live inside
 the functions. Messages (tuples over a `multiprocessing` Pipe; pydantic models travel pickled, already validated):
 
-    start (spawn args) worker_main(conn, [(site_id, bundle_dir), ...], LocalizeConfig, test_hooks)
+    start (spawn args) worker_main(conn, [(site_id, bundle_dir), ...], LocalizeConfig, test_hooks, slot)
     parent -> worker   ("localize", job_id, site_id, version, parts: dict[str, bytes], meta: FrameMeta,
                         session: SessionJob | None)    a session's frame is tracked (Localizer.track)
                        ("load", job_id, site_id, path)     load (or reload) one site; keeps the previous version
@@ -51,12 +51,15 @@ log = logging.getLogger("cadreg.service.worker")
 class _Sites:
     """Localizers by site id, newest version last; keeps `VERSIONS_KEPT` versions per site."""
 
-    def __init__(self, config: LocalizeConfig) -> None:
+    def __init__(self, config: LocalizeConfig, slot: int = 0) -> None:
         from cadreg.config import LocalizeConfig
 
         if not isinstance(config, LocalizeConfig):
             raise TypeError(f"localize config must be a LocalizeConfig, not {type(config).__name__}")
         self.config = config
+        # The pool's workers start together: those of odd and even slots compile the localizer's loops from opposite
+        # ends (`compile_loops`), so that on a cold cache two of them each compile about half.
+        self.compile_last_first = slot % 2 == 1
         self.by_site: dict[str, OrderedDict[str, Any]] = {}
 
     def build(self, site_id: str, path: str) -> tuple[str, Any]:
@@ -72,7 +75,7 @@ class _Sites:
         try:
             if len(site.map) == 0:
                 raise ValueError("map.ply has no points")
-            localizer = Localizer.from_site(site, self.config).warm(compile_last_first=_slot() % 2 == 1)
+            localizer = Localizer.from_site(site, self.config).warm(compile_last_first=self.compile_last_first)
         except CadregError:
             raise
         except Exception as exc:
@@ -104,14 +107,6 @@ class _Sites:
 
     def loaded(self) -> list[list[str]]:
         return [[sid, v] for sid, versions in self.by_site.items() for v in versions]
-
-
-def _slot() -> int:
-    """This worker's slot in the pool (its process name's number; 0 outside a pool's worker): workers of odd and
-    even slots compile the localizer's loops from opposite ends (`compile_loops`)."""
-    name = multiprocessing.current_process().name
-    number = name.rsplit("-", 1)[-1]
-    return int(number) if name.startswith(WORKER_NAME_PREFIX) and number.isdigit() else 0
 
 
 def _error_body(exc: BaseException) -> dict[str, Any]:
@@ -152,8 +147,9 @@ def _localize(sites: _Sites, msg: tuple, test_hooks: bool) -> tuple:
         return ("result", job_id, False, _error_body(exc), None)
 
 
-def worker_main(conn, sites: list[tuple[str, str]], localize_config: LocalizeConfig, test_hooks: bool) -> None:
-    """Entry point of a worker process; `sites` = [(site_id, bundle_dir)]."""
+def worker_main(conn, sites: list[tuple[str, str]], localize_config: LocalizeConfig, test_hooks: bool,
+                slot: int = 0) -> None:
+    """Entry point of a worker process; `sites` = [(site_id, bundle_dir)]; slot: its place in the pool."""
     import signal
 
     # Ctrl-C in a terminal reaches the whole process group; the parent stops the workers in order.
@@ -162,7 +158,7 @@ def worker_main(conn, sites: list[tuple[str, str]], localize_config: LocalizeCon
     if "numpy" in sys.modules and os.environ.get("OMP_NUM_THREADS") != "1":
         log.warning("numpy was imported before the worker set its thread limits")
     try:
-        loaded = _Sites(localize_config)
+        loaded = _Sites(localize_config, slot)
         for site_id, path in sites:
             loaded.load(site_id, path)
     except Exception as exc:

@@ -2,12 +2,11 @@
 cost seconds of a cold cache's first start), each against numpy or scipy, with the normals of neighbourhoods that
 have no single least axis; and the order a server's workers compile them in."""
 
-import multiprocessing
-
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from cadreg.config import LocalizeConfig
 from cadreg.localize import localizer
 from cadreg.localize.field_kernels import _rotation, _solve_positive_definite, _turn_in_place
 from cadreg.localize.grid_gicp import _least_axis
@@ -19,8 +18,12 @@ def test_a_positive_definite_system_is_solved_as_numpy_solves_it(n) -> None:
     rng = np.random.default_rng(n)
     for _ in range(20):
         J = rng.normal(size=(50, n)) * rng.uniform(0.01, 10.0, n)  # columns of very different scales, as x, y, yaw
-        H, b = J.T @ J + 1e-6 * np.eye(n), rng.normal(size=n)
-        np.testing.assert_allclose(_solve_positive_definite(H, b), np.linalg.solve(H, b), rtol=1e-9, atol=1e-12)
+        H, b, x = J.T @ J + 1e-6 * np.eye(n), rng.normal(size=n), np.empty(n)
+        assert _solve_positive_definite(H, b, x)
+        np.testing.assert_allclose(x, np.linalg.solve(H, b), rtol=1e-9, atol=1e-12)
+    # not positive definite (indefinite, or a NaN in it): said so, where numpy would solve or spread the NaN
+    for H in (np.array([[1.0, 2.0], [2.0, 1.0]]), np.array([[1.0, 0.0], [0.0, np.nan]])):
+        assert not _solve_positive_definite(H, np.ones(2), np.empty(2))
 
 
 def test_a_rotation_vector_turns_as_scipys_and_products_are_numpys() -> None:
@@ -54,13 +57,14 @@ def test_the_least_axis_is_a_unit_eigenvector_of_the_least_eigenvalue(name, C) -
 def test_workers_of_odd_slots_compile_from_the_other_end(monkeypatch) -> None:
     calls = []
     monkeypatch.setattr(localizer.field_kernels, "warm", lambda dtypes: calls.append(("field_kernels", dtypes)))
-    for module in (localizer.cluster, localizer.view_kernels):
+    modules = (localizer.cluster, localizer.frame_points, localizer.gravity, localizer.grid_gicp, localizer.match,
+               localizer.point_tree, localizer.room_twins, localizer.view_kernels)
+    for module in modules:
         monkeypatch.setattr(module, "warm", lambda name=module.__name__: calls.append((name, None)))
     localizer.compile_loops((np.uint8,))
     forward, calls[:] = list(calls), []
     localizer.compile_loops((np.uint8,), last_first=True)
-    assert calls == forward[::-1] and forward[0] == ("field_kernels", (np.uint8,))
-    assert forward[1] == ("cadreg.localize.cluster", None) and forward[-1] == ("cadreg.localize.view_kernels", None)
-    for name, slot in [("cadreg-worker-0", 0), ("cadreg-worker-3", 3), ("MainProcess", 0), ("cadreg-worker-x", 0)]:
-        monkeypatch.setattr(multiprocessing.current_process(), "name", name)
-        assert worker._slot() == slot
+    assert forward == [("field_kernels", (np.uint8,))] + [(m.__name__, None) for m in modules]
+    assert calls == forward[::-1]
+    config = LocalizeConfig()
+    assert [worker._Sites(config, slot).compile_last_first for slot in range(4)] == [False, True, False, True]

@@ -42,15 +42,17 @@ def test_a_coarse_field_is_a_lower_bound_within_its_cell(stored: bool) -> None:
     assert np.all(coarse.lookup(np.array([[50.0, 0.5, 0.5], [np.nan, 0.5, 0.5]])) == np.float32(0.5))
 
 
+@pytest.mark.parametrize("stored", [True, False])
 @pytest.mark.parametrize("spacing_m", [0.03, 0.05, 0.1])
-def test_surface_points_are_the_occupied_cells_one_per_cube(spacing_m: float) -> None:
+def test_surface_points_are_the_occupied_cells_one_per_cube(spacing_m: float, stored: bool) -> None:
     rng = np.random.default_rng(6)
     room = rng.uniform([0, 0, 0], [2, 1.5, 1], size=(3000, 3))
-    field = DistanceField.from_grid(building_field([room], voxel_m=0.03))
+    field = DistanceField.from_grid(building_field([room], voxel_m=0.03)) if stored else DistanceField(room)
     got = field.surface_points(spacing_m)
     # Written out: the cells within half a voxel of the map, one per thinned cube (its first corner), in order.
     d = field.dims + 2
-    ijk = np.stack(np.unravel_index(np.flatnonzero(field.grid <= 0.015 / field.step_m), tuple(d)), axis=1)
+    within = 0.015 if field.step_m is None else 0.015 / field.step_m  # metres in a float field, steps in a stored one
+    ijk = np.stack(np.unravel_index(np.flatnonzero(field.grid <= within), tuple(d)), axis=1)
     thin = max(1, int(round(spacing_m / 0.03)))
     expected = field.origin + (np.unique(ijk // thin, axis=0) * thin - 1 + 0.5) * 0.03
     assert np.array_equal(got, expected)

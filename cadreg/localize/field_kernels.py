@@ -211,7 +211,7 @@ def align(grid, scale, origin, voxel, hi, strides, points, R, t, up, turn_about_
     for a in range(3):
         offsets[1 + 2 * a, a] = 1.0
         offsets[2 + 2 * a, a] = -1.0
-    J = np.empty(6)
+    J, step = np.empty(6), np.empty(dof)
     for h in range(len(R)):
         r_, s = R[h], t[h]
         for k in range(iterations):
@@ -249,27 +249,28 @@ def align(grid, scale, origin, voxel, hi, strides, points, R, t, up, turn_about_
                 else:
                     J[0], J[1], J[2], J[3], J[4], J[5] = cx, cy, cz, gx, gy, gz
                 for u in range(dof):
-                    b[u] += J[u] * d
+                    b[u] -= J[u] * d  # -Jᵀ d: the Gauss-Newton step solves H step = b
                     for v in range(dof):
                         H[u, v] += J[u] * J[v]
             if used < 3 * dof:  # too few points within reach: the pose stays
                 continue
-            minus_step = _solve_positive_definite(H, b)  # the Gauss-Newton step is -H⁻¹ b
+            if not _solve_positive_definite(H, b, step):  # (a NaN, or rounding past the damping): the pose stays
+                continue
             if turn_about_up:
-                wx, wy, wz = -minus_step[0] * up[0], -minus_step[0] * up[1], -minus_step[0] * up[2]
+                wx, wy, wz = step[0] * up[0], step[0] * up[1], step[0] * up[2]
             else:
-                wx, wy, wz = -minus_step[0], -minus_step[1], -minus_step[2]
+                wx, wy, wz = step[0], step[1], step[2]
             dR = _rotation(wx, wy, wz)
             _turn_in_place(dR, r_)
-            _turn_in_place(dR, s.reshape((3, 1)))
+            s0, s1, s2 = s[0], s[1], s[2]
             for a in range(3):
-                s[a] -= minus_step[dof - 3 + a]
+                s[a] = dR[a, 0] * s0 + dR[a, 1] * s1 + dR[a, 2] * s2 + step[dof - 3 + a]
 
 
 @njit(cache=True, nogil=True)
 def _rotation(wx, wy, wz):
     """The rotation (3, 3) of the rotation vector (wx, wy, wz) (Rodrigues), I + sin θ K + (1 - cos θ) K², element by
-    element (see below)."""
+    element (as loops: see `_turn_in_place`)."""
     theta = math.sqrt(wx * wx + wy * wy + wz * wz)
     K = np.empty((3, 3))
     K[0, 0], K[0, 1], K[0, 2] = 0.0, -wz, wy
@@ -305,8 +306,9 @@ def _turn_in_place(A, B):
 
 
 @njit(cache=True, nogil=True)
-def _solve_positive_definite(H, b):
-    """x with H x = b, H (n, n) symmetric positive definite (a Gauss-Newton system with its damping), by Cholesky."""
+def _solve_positive_definite(H, b, x):
+    """x <- H⁻¹ b, H (n, n) symmetric positive definite (a Gauss-Newton system with its damping), by Cholesky.
+    Returns False, x unset, where H is not (a pivot not above naught, or NaN)."""
     n = len(b)
     L = np.zeros((n, n))
     for i in range(n):
@@ -314,8 +316,12 @@ def _solve_positive_definite(H, b):
             acc = H[i, j]
             for k in range(j):
                 acc -= L[i, k] * L[j, k]
-            L[i, j] = math.sqrt(acc) if i == j else acc / L[j, j]
-    x = np.empty(n)
+            if i != j:
+                L[i, j] = acc / L[j, j]
+            elif acc > 0.0:
+                L[i, i] = math.sqrt(acc)
+            else:
+                return False
     for i in range(n):  # L y = b
         acc = b[i]
         for k in range(i):
@@ -326,7 +332,7 @@ def _solve_positive_definite(H, b):
         for k in range(i + 1, n):
             acc -= L[k, i] * x[k]
         x[i] = acc / L[i, i]
-    return x
+    return True
 
 
 @njit(cache=True, nogil=True)

@@ -216,7 +216,7 @@ def _any_least_axis(C, least, out):
     """out <- a unit vector of the least eigenvalue's eigenspace of the symmetric 3 x 3 C where that is a plane or
     all of space (points on a line, or all alike: no surface normal to find, any will do). The rows of C - least I
     then lie along one direction a: the unit vector across a, a × the axis a is least along; where they all vanish
-    (C is least I), the axis of C's least diagonal entry, as LAPACK's eigh returns for C = 0."""
+    (C is least I), the first axis, as LAPACK's eigh returns."""
     ax = ay = az = 0.0  # the row of C - least I farthest from naught
     size = 0.0
     for i in range(3):
@@ -224,19 +224,14 @@ def _any_least_axis(C, least, out):
         n = rx * rx + ry * ry + rz * rz
         if n > size:
             ax, ay, az, size = rx, ry, rz, n
-    k = 0
-    if size == 0.0:  # C is least I: its least diagonal entry's axis
-        for i in range(1, 3):
-            if C[i, i] < C[k, k]:
-                k = i
-    else:  # the axis a is least along: a × it is well away from naught
-        if abs(ay) < abs(ax):
-            k = 1
-        if abs(az) < min(abs(ax), abs(ay)):
-            k = 2
+    k = 0  # the axis a is least along: a × it is well away from naught
+    if abs(ay) < abs(ax):
+        k = 1
+    if abs(az) < min(abs(ax), abs(ay)):
+        k = 2
     out[0] = out[1] = out[2] = 0.0
     out[k] = 1.0
-    if size == 0.0:
+    if size == 0.0:  # (a is naught: the first axis)
         return
     wx, wy, wz = ay * out[2] - az * out[1], az * out[0] - ax * out[2], ax * out[1] - ay * out[0]
     size = math.sqrt(wx * wx + wy * wy + wz * wz)

@@ -84,14 +84,13 @@ class DistanceField:
         threshold = within if self.step_m is None else within / self.step_m
         d = self.dims + 2
         thin = max(1, int(round(spacing_m / self.voxel_m)))
-        if thin == 1:
-            occupied = np.flatnonzero(self.grid <= threshold)
+        if thin == 1:  # (cubes of one cell: a mask of the grid is no bigger than the marks below)
+            ijk = np.stack(np.unravel_index(np.flatnonzero(self.grid <= threshold), tuple(d)), axis=1)
         else:  # one pass marking the cubes (a mask of the grid, then its cells' cubes made unique: several times that)
             blocks = -(-d // thin)
             cubes = np.zeros(int(np.prod(blocks)), dtype=np.bool_)
             field_kernels.occupied_cubes(field_kernels.read_only(self.grid), d, threshold, thin, blocks, cubes)
-            occupied, d = np.flatnonzero(cubes), blocks
-        ijk = np.stack(np.unravel_index(occupied, tuple(d)), axis=1) * thin
+            ijk = np.stack(np.unravel_index(np.flatnonzero(cubes), tuple(blocks)), axis=1) * thin
         return self.origin + (ijk - 1 + 0.5) * self.voxel_m
 
     def lookup(self, points: np.ndarray) -> np.ndarray:
