@@ -405,7 +405,7 @@ def occupied_cubes(grid, dims, threshold, thin, blocks, out):
 FIELD_DTYPES = (np.uint8, np.float32)
 
 
-def warm(field_dtypes=FIELD_DTYPES) -> None:
+def warm(field_dtypes: tuple[type[np.generic], ...] = FIELD_DTYPES) -> None:
     """Compile (or load from numba's cache) every loop for the kinds of grid given (`FIELD_DTYPES`: those a site's
     field may hold), so that no frame pays for it: a first compilation takes seconds, a cached one a fraction of
     one."""

@@ -104,7 +104,8 @@ TOP_PERCENTILE = 98
 MAX_SEEN_FROM_BEHIND = 0.8
 
 
-def compile_loops(field_dtypes=field_kernels.FIELD_DTYPES, *, last_first: bool = False) -> None:
+def compile_loops(field_dtypes: tuple[type[np.generic], ...] = field_kernels.FIELD_DTYPES, *,
+                  last_first: bool = False) -> None:
     """Compile (or load from numba's cache) every compiled loop the localizer runs, the field's for the kinds of
     grid given: `Localizer.warm` at a server's start (its site's kind), the Dockerfile at build time (both).
     last_first: module by module in the reverse order. A server's workers start together: on a cold cache (a fresh
