@@ -44,6 +44,7 @@ import numpy as np
 import small_gicp
 from scipy.spatial.transform import Rotation
 
+from .bench_methods import METHODS
 from .errors import InvalidArgument
 from .frame import Frame
 from .geometry import invert_T, pose_errors, transform_points
@@ -52,12 +53,8 @@ from .label_noise import LabelNoise, corrupt_labels
 from .labels import is_object_class
 from .localize.localizer import Localizer
 from .localize.points import frame_to_points
-from .localize.refine import REFINE_METHODS
 from .result import Status
 
-BASE_METHODS = ("cadreg", "cadreg-nolabels", "fpfh-ransac", "kiss-matcher", "refine-from-gt-perturbed")
-METHODS = BASE_METHODS + tuple(f"cadreg:{m}" for m in REFINE_METHODS) + tuple(
-    f"refine-from-gt-perturbed:{m}" for m in REFINE_METHODS)
 # Lower edges of the confidence bands of the reliability table; the last band includes 1.
 CONFIDENCE_BANDS = (0.0, 0.5, 0.7, 0.9)
 

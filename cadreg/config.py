@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import tomllib
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -244,12 +244,18 @@ class MatchConfig(_Section):
     distinct_rotation_deg: float = Field(15.0, gt=0)
 
 
+# The fine refinement's implementations (`localize.refine.refine`): named here, where the config checks them, so that
+# the CLI lists them without importing the localizer.
+RefineMethod = Literal["color_gicp", "small_gicp", "open3d_colored_icp"]
+REFINE_METHODS: tuple[str, ...] = get_args(RefineMethod)
+
+
 class RefineConfig(_Section):
     """Fine refinement (paper §2.5)."""
 
     roi_radius_m: float = Field(3.0, gt=0, description="γ: the map is cropped to this radius around the hypothesis")
     epsilon: float = Field(1e-3, gt=0, description="ε: stop when the update is below this")
-    method: Literal["color_gicp", "small_gicp", "open3d_colored_icp"] = "small_gicp"
+    method: RefineMethod = "small_gicp"
     map_points: Literal["raw", "enhanced", "both"] = Field("raw", description="which map the frame is refined against")
     fine_voxel_m: float = Field(0.025, gt=0, description="map resolution for small_gicp")
     coarse_voxel_m: float = Field(0.08, gt=0, description="map and frame resolution of the coarse check of hypotheses")

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -56,3 +58,14 @@ def test_core_has_no_print_or_environment() -> None:
             if isinstance(node, ast.Attribute) and node.attr == "environ":
                 bad.append(f"{path.relative_to(REPO)}:{node.lineno} os.environ")
     assert not bad, "\n".join(bad)
+
+
+def test_building_the_cli_parser_imports_no_localizer() -> None:
+    """Every command builds the whole parser, `cadreg serve` too, whose workers (not its parent) localize: the
+    parser's choices come from light modules, not from the localizer, its compiled loops or the registration
+    libraries (they cost a server's start about half a second)."""
+    heavy = ("numba", "open3d", "small_gicp", "cadreg.localize.localizer", "cadreg.bench")
+    code = ("import sys; from cadreg.cli.main import build_parser; build_parser(); "
+            f"print(','.join(m for m in {heavy!r} if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO)
+    assert out.stdout.strip() == ""

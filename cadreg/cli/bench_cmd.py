@@ -15,7 +15,7 @@ log = logging.getLogger("cadreg.bench")
 
 
 def register(sub) -> None:
-    from ..bench import METHODS
+    from ..bench_methods import METHODS
 
     p = sub.add_parser("bench", help="benchmark localization methods on recorded frames with ground-truth poses",
                        description="Run each --method on the same frames; time is per frame on this process "

@@ -11,7 +11,7 @@ from tqdm import tqdm
 
 
 def register(sub) -> None:
-    from ..localize.refine import REFINE_METHODS
+    from ..config import REFINE_METHODS
 
     p = sub.add_parser("localize", help="localize one recorded frame in a site; prints the JSON result")
     p.add_argument("--site", required=True, type=Path, help="site bundle directory")

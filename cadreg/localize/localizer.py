@@ -24,7 +24,7 @@ from functools import partial
 import numpy as np
 import small_gicp
 
-from ..config import LocalizeConfig
+from ..config import REFINE_METHODS, LocalizeConfig
 from ..errors import InvalidArgument, InvalidFrame
 from ..frame import Frame
 from ..geometry import make_Ts, rotation_between, transform_points
@@ -47,7 +47,7 @@ from .gravity import estimate_floor, map_floor_height, map_up_axis, planar_norma
 from .match import (Hypotheses, MapGraph, best_overall_and_by_group, distinct_best, distinct_pairs,
                     gravity_hypotheses, kabsch_hypotheses, score_graph)
 from .points import frame_to_points, voxel_budget, voxel_downsample, window_colours
-from .refine import GICP_NEIGHBORS, REFINE_METHODS, RefineMap
+from .refine import GICP_NEIGHBORS, RefineMap
 from .refine_stage import RefineStage
 from .regions import RegionIndex, RegionMaps, region_cloud
 from .score import DistanceField, ViewCheck, score_poses

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import small_gicp
 
+from ..config import REFINE_METHODS
 from ..errors import InvalidArgument
 from ..geometry import transform_points
 from .color_gicp import ColorGicpTarget, color_gicp, linear_to_lab, prepare_cloud, rgb_to_lab, srgb_to_linear
@@ -26,7 +27,6 @@ from .points import FramePoints, voxel_indices
 # judged by its fitness, not by its colours).
 MIN_COLOR_PAIRS = 50
 
-REFINE_METHODS = ("color_gicp", "small_gicp", "open3d_colored_icp")
 # Neighbours of each point's covariance in GICP: small_gicp's default, for the map's side and the frame's alike.
 GICP_NEIGHBORS = 10
 # The map's grid for fitness and agreement (`RefineMap.fit_xyz`): one map point per voxel of this size.
