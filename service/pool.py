@@ -26,6 +26,7 @@ from typing import Any
 
 from cadreg.config import LocalizeConfig
 from cadreg.errors import CadregError, Overloaded, RequestTimeout, WorkerCrashed
+from cadreg.site.bundle import FileChecks
 
 from .errors import error_from_body
 from .logs import log_event
@@ -125,6 +126,8 @@ class WorkerPool:
     """`workers` processes, each holding a Localizer per site; at most `workers + queue_depth` jobs at once.
 
     sites : {site_id: bundle directory} loaded by every worker at start (and by every replacement).
+    checked : {site_id: what the parent's hash check of the bundle found} (`Site.check_files`): a worker does not
+    hash again a file that has not changed since.
     localize_config : the algorithm's parameters, sent as the object itself to every worker (and replacement).
     """
 
@@ -139,8 +142,10 @@ class WorkerPool:
         start_timeout_s: float = 600.0,
         localize_config: LocalizeConfig | None = None,
         test_hooks: bool = False,
+        checked: dict[str, FileChecks] | None = None,
     ) -> None:
         self._sites = dict(sites)
+        self._checked = {sid: c for sid, c in (checked or {}).items() if sid in self._sites}
         self._n = workers
         self._queue_depth = queue_depth
         self._timeout_s = timeout_s
@@ -262,20 +267,21 @@ class WorkerPool:
         self._wake()
         return future
 
-    def load_site(self, site_id: str, path: str) -> concurrent.futures.Future:
+    def load_site(self, site_id: str, path: str, checked: FileChecks | None = None) -> concurrent.futures.Future:
         """Have every worker load `site_id` from `path`, keeping the version it replaces for jobs already dispatched
         to it. Resolves to None once every worker has it, or by the request timeout once at least one has (a worker
         still loading it then is hung: it is killed and its replacement starts with the new path; one that has it
         queued loads it later), or raises the first worker's error (RequestTimeout when none answered). Only on
-        success do replacements start with the new path."""
+        success do replacements start with the new path. checked: what the parent's hash check of it found."""
         future: concurrent.futures.Future = concurrent.futures.Future()
 
         def adopt() -> None:  # lock held
             self._sites[site_id] = path
+            self._checked[site_id] = checked or {}
 
         with self._lock:
             job_id = next(self._ids)
-            control = _Control(job_id, ("load", job_id, site_id, path), future,
+            control = _Control(job_id, ("load", job_id, site_id, path, checked), future,
                                deadline=time.monotonic() + self._timeout_s, adopt=adopt)
             for w in self._workers:
                 control.waiting.add(w.slot)
@@ -284,7 +290,7 @@ class WorkerPool:
         self._wake()
         return future
 
-    def probe_site(self, site_id: str, path: str) -> concurrent.futures.Future:
+    def probe_site(self, site_id: str, path: str, checked: FileChecks | None = None) -> concurrent.futures.Future:
         """Have one worker build `site_id`'s localizer from `path` and drop it: proves a bundle loads before it
         replaces anything. Resolves to None, or raises the worker's error (InvalidFileError naming why it cannot
         load), RequestTimeout past the request timeout (the worker is replaced), Overloaded when no worker is up."""
@@ -295,7 +301,7 @@ class WorkerPool:
                 raise Overloaded("no worker is up to check the bundle", retry_after_s=self._retry_after_s)
             w = min(up, key=lambda w: (w.state != "idle", len(w.controls)))
             job_id = next(self._ids)
-            control = _Control(job_id, ("probe", job_id, site_id, path), future,
+            control = _Control(job_id, ("probe", job_id, site_id, path, checked), future,
                                deadline=time.monotonic() + self._timeout_s, waiting={w.slot})
             w.controls.append(control)
             self._controls.append(control)
@@ -383,7 +389,7 @@ class WorkerPool:
     def _spawn(self, w: _Worker) -> None:
         """Start a process for slot `w` (lock held)."""
         parent_conn, child_conn = self._ctx.Pipe(duplex=True)
-        sites = sorted(self._sites.items())
+        sites = [(sid, path, self._checked.get(sid)) for sid, path in sorted(self._sites.items())]
         process = self._ctx.Process(
             target=worker_main,
             args=(child_conn, sites, self._localize_config, self._test_hooks, w.slot),

@@ -1,8 +1,9 @@
 """The site registry: which sites the service serves, at which bundle version, from which directory.
 
 The parent reads manifests, the workers load maps: at start every bundle under the sites root
-(`<root>/<site_id>/site.json`) is checked here by `Site.read_manifest(verify=True)` (schema, keys, version, every
-file's sha256; no point cloud is parsed) to learn its id, version and counts; only the workers parse the arrays.
+(`<root>/<site_id>/site.json`) is checked here by `Site.check_files` (schema, keys, version, every file's sha256; no
+point cloud is parsed) to learn its id, version and counts; only the workers parse the arrays. What the check found
+(each file's hash with its stamp) goes to the workers with the path: they hash again only a file that changed since.
 An upload is hash-checked once, on its staged copy. A reload validates the new bundle first, has every worker load
 it (they keep the old version for requests already dispatched), and only then swaps the registry entry: requests
 in flight finish on the old version, requests admitted after the swap carry the new one.
@@ -19,12 +20,12 @@ import threading
 import uuid
 import zipfile
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import IO, Any
 
 from cadreg.errors import BundleIntegrityError, CadregError, InputError, InvalidFileError, PayloadTooLarge, UnknownSite
-from cadreg.site.bundle import DATA_FILES, OPTIONAL_FILES
+from cadreg.site.bundle import DATA_FILES, OPTIONAL_FILES, FileChecks
 
 from .logs import log_event
 
@@ -63,6 +64,8 @@ class SiteEntry:
     classes: tuple[str, ...]
     label_sets: tuple[str, ...] = ()  # the label sets the site has a label map for (site.json `label_maps`)
     regions: tuple[dict[str, Any], ...] = ()  # {id, bounds, objects, points} per region (`GET /v1/sites/{id}`)
+    # what the parent's hash check found: the workers load the bundle without hashing again what has not changed
+    checked: FileChecks = field(default_factory=dict, compare=False, repr=False)
 
     def summary(self) -> dict[str, Any]:
         return {"site_id": self.site_id, "version": self.version}
@@ -79,7 +82,7 @@ def inspect_bundle(path: str | Path) -> SiteEntry:
     from cadreg.site.bundle import Site
 
     meta_path = Path(path) / "site.json"
-    meta = Site.read_manifest(path, verify=True)
+    meta, checked = Site.check_files(path)
     counts = meta.get("counts")
     if not isinstance(counts, dict):
         raise InvalidFileError(meta_path, "missing key 'counts' (points, raw_points, nodes, edges)")
@@ -98,6 +101,7 @@ def inspect_bundle(path: str | Path) -> SiteEntry:
         classes=classes,
         label_sets=label_sets,
         regions=regions,
+        checked=checked,
         **sizes,
     )
 
@@ -161,6 +165,11 @@ class SiteRegistry:
     def paths(self) -> dict[str, str]:
         with self._lock:
             return {sid: e.path for sid, e in self._sites.items()}
+
+    def checks(self) -> dict[str, FileChecks]:
+        """{site_id: what the hash check of its bundle found} (`Site.check_files`), for the workers' loads."""
+        with self._lock:
+            return {sid: e.checked for sid, e in self._sites.items()}
 
     def reload_lock(self, site_id: str) -> threading.Lock:
         """One reload per site at a time."""

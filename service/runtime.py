@@ -81,6 +81,7 @@ class Service:
             start_timeout_s=s.worker_start_timeout_s,
             localize_config=s.localize_config,
             test_hooks=s.test_hooks,
+            checked=self.registry.checks(),
         )
         self.pool.start()
         self.started.set()
@@ -197,14 +198,14 @@ class Service:
         if self.pool is None:
             raise Overloaded("the service is starting", retry_after_s=self.settings.retry_after_s)
         try:
-            self.pool.probe_site(entry.site_id, entry.path).result(timeout=self._control_wait_s())
+            self.pool.probe_site(entry.site_id, entry.path, entry.checked).result(timeout=self._control_wait_s())
         except InvalidFileError as exc:
             raise _relative(exc, Path(entry.path)) from None
 
     def _load_everywhere(self, entry: SiteEntry) -> None:
         if self.pool is None:
             raise Overloaded("the service is starting", retry_after_s=self.settings.retry_after_s)
-        self.pool.load_site(entry.site_id, entry.path).result(timeout=self._control_wait_s())
+        self.pool.load_site(entry.site_id, entry.path, entry.checked).result(timeout=self._control_wait_s())
 
     def _control_wait_s(self) -> float:
         # The pool settles a control by the request timeout (hung workers are replaced); the margin is for its

@@ -4,11 +4,13 @@ Runs in a "spawn" child (Open3D and threads do not mix with fork). Numeric libra
 variables below are set before numpy/open3d are imported in this process, which is why the heavy imports live inside
 the functions. Messages (tuples over a `multiprocessing` Pipe; pydantic models travel pickled, already validated):
 
-    start (spawn args) worker_main(conn, [(site_id, bundle_dir), ...], LocalizeConfig, test_hooks, slot)
+    start (spawn args) worker_main(conn, [(site_id, bundle_dir, checked), ...], LocalizeConfig, test_hooks, slot)
     parent -> worker   ("localize", job_id, site_id, version, parts: dict[str, bytes], meta: FrameMeta,
                         session: SessionJob | None)    a session's frame is tracked (Localizer.track)
-                       ("load", job_id, site_id, path)     load (or reload) one site; keeps the previous version
-                       ("probe", job_id, site_id, path)    build the site's localizer and drop it (an upload's check)
+                       ("load", job_id, site_id, path, checked)    load (or reload) one site; keeps the previous
+                                                                   version
+                       ("probe", job_id, site_id, path, checked)   build the site's localizer and drop it (an
+                                                                   upload's check)
                        ("stop",)
     worker -> parent   ("ready", pid, [[site_id, version], ...])
                        ("result", job_id, True, result_dict, version_used[, session_state | None])
@@ -16,6 +18,9 @@ the functions. Messages (tuples over a `multiprocessing` Pipe; pydantic models t
                        ("result", job_id, False, error_body, None)
                        ("loaded", job_id, True, [site_id, version] | error_body)   (answers load and probe)
                        ("failed", error_body)              start-up failed (a site could not be loaded)
+
+`checked` is what the parent's hash check of the bundle found (`cadreg.site.bundle.FileChecks`, or None): the worker
+hashes only the files that changed since.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ from typing import TYPE_CHECKING, Any  # noqa: E402
 
 if TYPE_CHECKING:
     from cadreg.config import LocalizeConfig
+    from cadreg.site.bundle import FileChecks
 
     from .schemas import FrameMeta
     from .sessions import SessionJob  # noqa: F401 - named in the message table above
@@ -62,14 +68,14 @@ class _Sites:
         self.compile_last_first = slot % 2 == 1
         self.by_site: dict[str, OrderedDict[str, Any]] = {}
 
-    def build(self, site_id: str, path: str) -> tuple[str, Any]:
+    def build(self, site_id: str, path: str, checked: FileChecks | None = None) -> tuple[str, Any]:
         """(version, warmed Localizer) of the bundle at `path`. Raises the bundle's InvalidFileError, or one saying
         why the localizer cannot be built (an empty map, points that break a search structure)."""
         from cadreg.errors import CadregError, InvalidFileError, UnknownSite
         from cadreg.localize.localizer import Localizer
         from cadreg.site.bundle import Site
 
-        site = Site.load(path)
+        site = Site.load(path, checked=checked)
         if site.site_id != site_id:
             raise UnknownSite(f"bundle at {path} is site {site.site_id!r}, expected {site_id!r}")
         try:
@@ -84,8 +90,8 @@ class _Sites:
             raise InvalidFileError(f"{site_id}/map.ply", f"the site cannot be loaded: {why}"[:300]) from None
         return site.version, localizer
 
-    def load(self, site_id: str, path: str) -> str:
-        version, localizer = self.build(site_id, path)
+    def load(self, site_id: str, path: str, checked: FileChecks | None = None) -> str:
+        version, localizer = self.build(site_id, path, checked)
         versions = self.by_site.setdefault(site_id, OrderedDict())
         versions.pop(version, None)
         versions[version] = localizer
@@ -147,9 +153,9 @@ def _localize(sites: _Sites, msg: tuple, test_hooks: bool) -> tuple:
         return ("result", job_id, False, _error_body(exc), None)
 
 
-def worker_main(conn, sites: list[tuple[str, str]], localize_config: LocalizeConfig, test_hooks: bool,
+def worker_main(conn, sites: list[tuple[str, str, FileChecks | None]], localize_config: LocalizeConfig, test_hooks: bool,
                 slot: int = 0) -> None:
-    """Entry point of a worker process; `sites` = [(site_id, bundle_dir)]; slot: its place in the pool."""
+    """Entry point of a worker process; `sites` = [(site_id, bundle_dir, checked)]; slot: its place in the pool."""
     import signal
 
     # Ctrl-C in a terminal reaches the whole process group; the parent stops the workers in order.
@@ -159,8 +165,8 @@ def worker_main(conn, sites: list[tuple[str, str]], localize_config: LocalizeCon
         log.warning("numpy was imported before the worker set its thread limits")
     try:
         loaded = _Sites(localize_config, slot)
-        for site_id, path in sites:
-            loaded.load(site_id, path)
+        for site_id, path, checked in sites:
+            loaded.load(site_id, path, checked)
     except Exception as exc:
         log.exception("worker start-up failed")
         conn.send(("failed", _error_body(exc)))
@@ -177,15 +183,15 @@ def worker_main(conn, sites: list[tuple[str, str]], localize_config: LocalizeCon
         if kind == "localize":
             reply = _localize(loaded, msg, test_hooks)
         elif kind == "load":
-            _, job_id, site_id, path = msg
+            _, job_id, site_id, path, checked = msg
             try:
-                reply = ("loaded", job_id, True, [site_id, loaded.load(site_id, path)])
+                reply = ("loaded", job_id, True, [site_id, loaded.load(site_id, path, checked)])
             except Exception as exc:
                 reply = ("loaded", job_id, False, _error_body(exc))
         elif kind == "probe":
-            _, job_id, site_id, path = msg
+            _, job_id, site_id, path, checked = msg
             try:
-                version, _localizer = loaded.build(site_id, path)
+                version, _localizer = loaded.build(site_id, path, checked)
                 del _localizer  # only the check was wanted: its memory goes now, not at the next build
                 reply = ("loaded", job_id, True, [site_id, version])
             except Exception as exc:

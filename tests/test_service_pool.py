@@ -4,6 +4,7 @@ jobs. (Kills, timeouts and overload through HTTP are in test_service_http.py.)""
 from __future__ import annotations
 
 import concurrent.futures
+import shutil
 import time
 from pathlib import Path
 
@@ -119,6 +120,28 @@ def test_a_worker_replaced_during_a_reload_loads_the_new_version(pool, envelope,
     job = pool.submit("scene0470", site.version, parts, meta).result(60)
     assert job.site_version == site.version
     pool.load_site("scene0470", str(scene0470_site_dir)).result(timeout=120)
+
+
+def test_a_reload_with_the_parents_findings_loads_and_a_file_changed_since_is_refused(
+        pool, envelope, scene0470_site_dir, tmp_path) -> None:
+    from cadreg.site.bundle import SETTLED_NS
+    from service.registry import inspect_bundle
+
+    copy = tmp_path / "scene0470"
+    shutil.copytree(scene0470_site_dir, copy)
+    time.sleep(SETTLED_NS / 1e9 + 0.1)
+    entry = inspect_bundle(copy)  # the parent's check: what it found goes to the workers with the path
+    assert {"map.ply", "raw.ply", "graph.json"} <= set(entry.checked)
+    pool.load_site("scene0470", str(copy), entry.checked).result(timeout=120)
+    parts, meta = envelope
+    assert pool.submit("scene0470", None, parts, meta).result(60).site_version == entry.version
+    blob = bytearray((copy / "raw.ply").read_bytes())
+    blob[-1] ^= 0x01
+    (copy / "raw.ply").write_bytes(bytes(blob))
+    with pytest.raises(InvalidFileError, match="raw.ply: sha256 does not match"):
+        pool.load_site("scene0470", str(copy), entry.checked).result(timeout=120)
+    pool.load_site("scene0470", str(scene0470_site_dir)).result(timeout=120)
+    assert pool.site_paths() == {"scene0470": str(scene0470_site_dir)}
 
 
 def test_a_cancelled_queued_job_is_skipped(pool, envelope) -> None:

@@ -178,16 +178,16 @@ def test_an_upload_is_hash_checked_once_and_never_loaded_by_the_parent(server, b
     from cadreg.site.bundle import Site
 
     checked: list[str] = []
-    read_manifest = Site.read_manifest
+    check_files = Site.check_files
 
-    def counted(site_dir, *, verify=True):
+    def counted(site_dir):
         checked.append(str(site_dir))
-        return read_manifest(site_dir, verify=verify)
+        return check_files(site_dir)
 
     def no_load(*args, **kwargs):
         raise AssertionError("the parent parsed an uploaded bundle")
 
-    monkeypatch.setattr(Site, "read_manifest", staticmethod(counted))
+    monkeypatch.setattr(Site, "check_files", staticmethod(counted))
     monkeypatch.setattr(Site, "load", classmethod(no_load))
     v1 = _version(bundles["v1"])
     with httpx.Client(base_url=server.url, timeout=120.0) as client:

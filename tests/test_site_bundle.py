@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import json
 import shutil
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from cadreg.errors import BundleIntegrityError, ConfigError, InvalidFileError, InvalidFrame
 from cadreg.site.build import site_from_labelled_points
-from cadreg.site.bundle import DATA_FILES, Site
+from cadreg.site.bundle import DATA_FILES, SETTLED_NS, Site
 
 COLUMNS = ("points", "colors", "normals", "instance", "class_index", "source")
 
@@ -181,6 +183,40 @@ def test_read_manifest_checks_without_parsing(small_site, tmp_path, monkeypatch)
     with pytest.raises(BundleIntegrityError, match="raw.ply: sha256 does not match"):
         Site.read_manifest(tmp_path / "b")
     assert Site.read_manifest(tmp_path / "b", verify=False)["version"] == small_site.version
+
+
+def test_files_another_process_checked_are_not_hashed_again_unless_they_changed(small_site, tmp_path, monkeypatch):
+    import cadreg.site.bundle as bundle
+
+    small_site.save(tmp_path / "b")
+    time.sleep(SETTLED_NS / 1e9 + 0.1)  # a file written less than that before its check gets no stamp (below)
+    meta, checked = Site.check_files(tmp_path / "b")
+    assert meta["version"] == small_site.version and set(checked) == set(DATA_FILES)
+    hashed: list[str] = []
+    real = bundle.sha256_file
+    monkeypatch.setattr(bundle, "sha256_file", lambda path: hashed.append(Path(path).name) or real(path))
+    # mapped: the clouds are streamed, not read whole (a building's load), so only the graph's bytes are hashed
+    site = Site.load(tmp_path / "b", mapped=True, checked=checked)
+    assert hashed == [] and site.version == small_site.version and len(site.map) == len(small_site.map)
+    # without the check's findings, or with a hash site.json does not list, every streamed file is hashed again
+    Site.load(tmp_path / "b", mapped=True)
+    assert hashed == ["map.ply", "raw.ply"]
+    hashed.clear()
+    Site.load(tmp_path / "b", mapped=True, checked={**checked, "raw.ply": ("0" * 64, checked["raw.ply"][1])})
+    assert hashed == ["raw.ply"]
+    # a file written since the check is hashed again, and refused when its bytes differ (same size, one bit)
+    original = (tmp_path / "b" / "raw.ply").read_bytes()
+    blob = bytearray(original)
+    blob[-1] ^= 0x01
+    (tmp_path / "b" / "raw.ply").write_bytes(bytes(blob))
+    hashed.clear()
+    with pytest.raises(BundleIntegrityError, match="raw.ply: sha256 does not match"):
+        Site.load(tmp_path / "b", mapped=True, checked=checked)
+    assert hashed == ["raw.ply"]
+    # written back as it was: it passes, but a check right after the write gives it no stamp to trust
+    (tmp_path / "b" / "raw.ply").write_bytes(original)
+    _, fresh = Site.check_files(tmp_path / "b")
+    assert set(fresh) == set(DATA_FILES) - {"raw.ply"}
 
 
 def test_a_stated_up_is_read_back_and_a_malformed_one_refused(small_site, tmp_path):

@@ -16,12 +16,14 @@ Bundle layout (DESIGN §3), self-describing, no pickle:
 `version` is the first 12 hex digits of the sha256 over the sorted "name:sha256" lines of map.ply, raw.ply,
 graph.json (and field.npy, regions.npy when present): the same content gives the same version, a rebuilt or
 replaced site a new one.
-`Site.load` checks every hash and raises BundleIntegrityError naming the file that does not match.
+`Site.load` checks every hash and raises BundleIntegrityError naming the file that does not match (a file that
+another process's check found matching and that has not changed since counts as checked: `FileChecks`).
 """
 
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,7 +32,8 @@ import numpy as np
 
 from ..config import GraphConfig
 from ..errors import BundleIntegrityError, ConfigError, InvalidFileError, InvalidFrame
-from ..io.bundle_files import map_npy, npy_bytes, read_bytes, read_json, sha256_bytes, sha256_file, write_bundle_dir
+from ..io.bundle_files import (file_stamp, map_npy, npy_bytes, read_bytes, read_json, sha256_bytes, sha256_file,
+                                write_bundle_dir)
 from ..io.ply import release_pages
 from ..labels import labels_to_class_index
 from ..pointset import MappedRows, PointSet
@@ -43,6 +46,14 @@ OPTIONAL_FILES = ("field.npy", "regions.npy")
 # A stored region grid's rows: position (map frame, metres), colour, class index (-1: none).
 REGION_GRID_DTYPE = np.dtype([("xyz", "<f4", (3,)), ("rgb", "u1", (3,)), ("cls", "<i2")])
 CLOUDS = ("raw", "enhanced", "both")
+# What a hash check of a bundle found (`Site.check_files`): per data file, its sha256 as site.json lists it and the
+# file's stamp (`file_stamp`) when it was hashed. `Site.load(..., checked=)` takes a file whose listed hash and stamp
+# are still these as checked rather than hash it again, as git's index does: a server's parent checks a bundle once
+# and each of its workers loads it (a 100-room bundle is 1.2 GB, a second of hashing for each).
+FileChecks = dict[str, tuple[str, tuple[int, ...]]]
+# A file changed less than this before it was hashed gets no stamp: file times tick coarsely (milliseconds), so a
+# write in the same tick right after the hash could leave the stamp as it was.
+SETTLED_NS = 1_000_000_000
 
 
 def version_of(file_hashes: dict[str, str]) -> str:
@@ -252,10 +263,20 @@ class Site:
         (`meta["counts"]`) without loading its arrays."""
         return _read_checked(Path(site_dir), verify=verify, keep=())[0]
 
+    @staticmethod
+    def check_files(site_dir: str | Path) -> tuple[dict[str, Any], FileChecks]:
+        """site.json, checked as `read_manifest` checks it with `verify` (the same errors), and what the check found
+        (`FileChecks`) for `Site.load(checked=)` in a process that loads the same bundle after this one."""
+        meta, _, found = _read_checked(Path(site_dir), verify=True, keep=())
+        return meta, found
+
     @classmethod
-    def load(cls, site_dir: str | Path, *, mapped: bool | None = None) -> "Site":
+    def load(cls, site_dir: str | Path, *, mapped: bool | None = None, checked: FileChecks | None = None) -> "Site":
         """Read and verify a bundle. Raises InvalidFileError (missing/malformed file) or BundleIntegrityError (a file
         whose sha256 differs from site.json, or a version that does not match the hashes), naming the file.
+
+        checked : what another process's check of this bundle found (`check_files`); a file whose hash in site.json
+        and stamp are still those it found is not hashed again. Every other file is.
 
         mapped : memory-map map.ply and raw.ply instead of reading them (read-only columns, paged in as used; see
         `PointSet.open_ply`); None = for a site of several regions (a building: a worker touches the rooms it
@@ -266,7 +287,8 @@ class Site:
             head = read_json(meta_path)
             mapped = isinstance(head, dict) and isinstance(head.get("regions"), list) and len(head["regions"]) > 1
         clouds = ("map.ply", "raw.ply")
-        meta, blobs = _read_checked(root, verify=True, keep=("graph.json",) if mapped else ("graph.json", *clouds))
+        meta, blobs, _ = _read_checked(root, verify=True, keep=("graph.json",) if mapped else ("graph.json", *clouds),
+                                       checked=checked)
         rows: dict[str, MappedRows] = {}
         if mapped:
             (enhanced, rows["map"]), (raw, rows["raw"]) = (PointSet.open_ply(root / name) for name in clouds)
@@ -357,10 +379,12 @@ def whole_site_region(site: Site, region_id: str | None = None) -> Region:
                               [n.id for n in site.graph.nodes], (0, len(site.map)), (0, len(site.raw)))
 
 
-def _read_checked(root: Path, *, verify: bool, keep: tuple[str, ...] = DATA_FILES) -> tuple[dict[str, Any], dict[str, bytes]]:
-    """(site.json, {data file: bytes}) of the bundle at `root`; with `verify`, every data file is hashed, and the
-    bytes of those named in `keep` are returned (`Site.load` parses the same bytes rather than reading them twice);
-    the others are hashed as a stream, never held whole."""
+def _read_checked(root: Path, *, verify: bool, keep: tuple[str, ...] = DATA_FILES,
+                  checked: FileChecks | None = None) -> tuple[dict[str, Any], dict[str, bytes], FileChecks]:
+    """(site.json, {data file: bytes}, what the check found) of the bundle at `root`; with `verify`, every data file
+    is hashed, and the bytes of those named in `keep` are returned (`Site.load` parses the same bytes rather than
+    reading them twice); the others are hashed as a stream, never held whole, unless `checked` holds their hash in
+    site.json and their stamp as they are now."""
     meta_path = root / "site.json"
     meta = read_json(meta_path)
     if not isinstance(meta, dict) or meta.get("schema") != SCHEMA:
@@ -374,12 +398,21 @@ def _read_checked(root: Path, *, verify: bool, keep: tuple[str, ...] = DATA_FILE
     if version_of(hashes) != meta["version"]:
         raise BundleIntegrityError(meta_path, f"version {meta['version']!r} does not match the file hashes")
     blobs: dict[str, bytes] = {}
+    found: FileChecks = {}
     if verify:
         for name in sorted(hashes):
-            blob = read_bytes(root / name) if name in keep else None
-            if (sha256_file(root / name) if blob is None else sha256_bytes(blob)) != hashes[name]:
-                raise BundleIntegrityError(root / name, "sha256 does not match site.json: the file was modified "
+            path = root / name
+            stamp = file_stamp(path)
+            if name not in keep and checked is not None and checked.get(name) == (hashes[name], stamp):
+                found[name] = checked[name]
+                continue
+            blob = read_bytes(path) if name in keep else None
+            if (sha256_file(path) if blob is None else sha256_bytes(blob)) != hashes[name]:
+                raise BundleIntegrityError(path, "sha256 does not match site.json: the file was modified "
                                            "or belongs to another build")
             if blob is not None:
                 blobs[name] = blob
-    return meta, blobs
+            # The stamp stands for the bytes hashed only if nothing wrote the file meanwhile, nor just before.
+            if file_stamp(path) == stamp and time.time_ns() - max(stamp[3], stamp[4]) > SETTLED_NS:
+                found[name] = (hashes[name], stamp)
+    return meta, blobs, found
