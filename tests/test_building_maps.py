@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from cadreg.config import LabelFreeConfig, LocalizeConfig, MatchConfig, RegionConfig
-from cadreg.errors import BundleIntegrityError
+from cadreg.errors import BundleIntegrityError, InvalidFileError
 from cadreg.localize.localizer import Localizer
 from cadreg.localize.regions import halo_cloud, region_cloud
 from cadreg.localize.score import DistanceField, building_field
@@ -68,6 +68,37 @@ def test_a_building_is_memory_mapped_read_only_and_its_field_is_hashed(twin_room
     grid[5, 5, 5] ^= 1
     np.save(bad / "field.npy", grid)
     with pytest.raises(BundleIntegrityError, match="field.npy"):
+        Site.load(bad)
+
+
+def test_a_worker_maps_the_stored_pyramid_when_its_settings_are_those_it_was_built_with(twin_rooms_dir: Path,
+                                                                                         tmp_path: Path) -> None:
+    site = Site.load(twin_rooms_dir)
+    assert site.pyramid is not None and not site.pyramid.grids.flags.writeable
+    mapped = Localizer.from_site(site).pyramid()[0]
+    assert np.shares_memory(mapped.grids[0], site.pyramid.grids)
+    unstored = Site.load(twin_rooms_dir)
+    unstored.pyramid = None  # a bundle composed before pyramids were stored: the worker builds its own
+    built = Localizer.from_site(unstored).pyramid()[0]
+    assert not np.shares_memory(built.grids[0], site.pyramid.grids)
+    assert all(np.array_equal(a, b) for a, b in zip(mapped.grids, built.grids)) and len(mapped.grids) == len(built.grids)
+    assert mapped.stored()[1] == built.stored()[1]
+    # other settings: the stored pyramid is not theirs, and it is left alone
+    other = Localizer.from_site(site, LocalizeConfig(label_free=LabelFreeConfig(tau_m=0.2))).pyramid()[0]
+    assert not np.shares_memory(other.grids[0], site.pyramid.grids) and other.built_with["tau_m"] == 0.2
+    # the grids are hashed like every file, and site.json's layout is checked
+    bad = tmp_path / "bad"
+    shutil.copytree(twin_rooms_dir, bad)
+    grids = np.load(bad / "pyramid.npy")
+    grids[0, 7] ^= 1
+    np.save(bad / "pyramid.npy", grids)
+    with pytest.raises(BundleIntegrityError, match="pyramid.npy"):
+        Site.load(bad)
+    shutil.copy(twin_rooms_dir / "pyramid.npy", bad / "pyramid.npy")
+    meta = json.loads((bad / "site.json").read_text())
+    del meta["pyramid"]["dims"]
+    (bad / "site.json").write_text(json.dumps(meta))
+    with pytest.raises(InvalidFileError, match="site.json: malformed 'pyramid'.*dims"):
         Site.load(bad)
 
 

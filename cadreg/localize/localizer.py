@@ -34,7 +34,7 @@ from ..site.bundle import Site
 from ..site.regions import Region
 from .cluster import cluster_objects
 from .color_gicp import rgb_to_lab
-from .bbs import GridPyramid, map_direction_histogram, turned_histogram
+from .bbs import GridPyramid, built_with, map_direction_histogram, matches, turned_histogram
 from .building_views import SAME_PLACE_DEPTH_MARGIN, BuildingViews
 from . import cluster, field_kernels, gravity, grid_gicp, match, point_tree, view_kernels
 from . import points as frame_points
@@ -234,14 +234,22 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
     def pyramid(self) -> tuple[GridPyramid, np.ndarray | None, list[np.ndarray | None] | None]:
         """The label-free search's grid pyramid of this site, the map's histogram of wall directions, and in a
         building each region's own (None in one room; built on first use, or by `warm`: about a second and
-        (levels + 1) bytes a cell, LabelFreeConfig.max_cells at most)."""
+        (levels + 1) bytes a cell, LabelFreeConfig.max_cells at most). A building's bundle stores its pyramid: it is
+        mapped when it was built with this localizer's up and settings."""
         if self._pyramid is None:
             lf = self.config.label_free
             surfaces = self.site.cloud("both") if len(self.maps) == 1 else None
-            # A building's occupied cells come from its stored field: its points stay where they lie.
-            occupied = self.field.surface_points(lf.voxel_m / 2) if surfaces is None else surfaces.points
-            pyr = GridPyramid(self.field, occupied, self.up, voxel_m=lf.voxel_m, levels=lf.levels, tau_m=lf.tau_m,
-                              reach_m=lf.reach_m, margin_m=lf.camera_margin_m, max_cells=lf.max_cells)
+            wanted = built_with(self.up, voxel_m=lf.voxel_m, levels=lf.levels, tau_m=lf.tau_m, reach_m=lf.reach_m,
+                                margin_m=lf.camera_margin_m, max_cells=lf.max_cells)
+            stored = self.site.pyramid
+            if surfaces is None and stored is not None and matches(stored.layout["built_with"], wanted):
+                pyr = GridPyramid.from_stored(stored.grids, stored.layout)
+            else:
+                # A building's occupied cells come from its stored field: its points stay where they lie.
+                occupied = self.field.surface_points(lf.voxel_m / 2) if surfaces is None else surfaces.points
+                pyr = GridPyramid(self.field, occupied, self.up, voxel_m=lf.voxel_m, levels=lf.levels,
+                                  tau_m=lf.tau_m, reach_m=lf.reach_m, margin_m=lf.camera_margin_m,
+                                  max_cells=lf.max_cells)
             if surfaces is None:
                 walls, region_walls = self._building_wall_directions(pyr.R_level_map)
             else:

@@ -12,9 +12,11 @@ Bundle layout (DESIGN §3), self-describing, no pickle:
                 (`FieldGrid`): loading it is a memory map, not a rebuild
     regions.npy (optional, buildings) each region's map points on a grid, its neighbours' within a halo included
                 (`RegionGrids`): what a localizer builds a region's search structures from, read, not gathered
+    pyramid.npy (optional, buildings) the label-free search's pyramid of score grids (`StoredPyramid`), mapped by a
+                worker whose settings are those it was built with, not built again in each
 
 `version` is the first 12 hex digits of the sha256 over the sorted "name:sha256" lines of map.ply, raw.ply,
-graph.json (and field.npy, regions.npy when present): the same content gives the same version, a rebuilt or
+graph.json (and field.npy, regions.npy, pyramid.npy when present): the same content gives the same version, a rebuilt or
 replaced site a new one.
 `Site.load` checks every hash and raises BundleIntegrityError naming the file that does not match (a file that
 another process's check found matching and that has not changed since counts as checked: `FileChecks`).
@@ -24,6 +26,7 @@ from __future__ import annotations
 
 import json
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -42,7 +45,7 @@ from .regions import Region, from_manifest, region_from_points, to_manifest
 
 SCHEMA = "cadreg.site/1"
 DATA_FILES = ("map.ply", "raw.ply", "graph.json")
-OPTIONAL_FILES = ("field.npy", "regions.npy")
+OPTIONAL_FILES = ("field.npy", "regions.npy", "pyramid.npy")
 # A stored region grid's rows: position (map frame, metres), colour, class index (-1: none).
 REGION_GRID_DTYPE = np.dtype([("xyz", "<f4", (3,)), ("rgb", "u1", (3,)), ("cls", "<i2")])
 CLOUDS = ("raw", "enhanced", "both")
@@ -54,6 +57,8 @@ FileChecks = dict[str, tuple[str, tuple[int, ...]]]
 # A file changed less than this before it was hashed gets no stamp: file times tick coarsely (milliseconds), so a
 # write in the same tick right after the hash could leave the stamp as it was.
 SETTLED_NS = 1_000_000_000
+# Files hashed side by side when a bundle is checked.
+HASH_THREADS = 4
 
 
 def version_of(file_hashes: dict[str, str]) -> str:
@@ -120,6 +125,17 @@ class RegionGrids:
                 "tree_leaf": int(self.tree_leaf), "offsets": [int(x) for x in self.offsets]}
 
 
+@dataclass(frozen=True, eq=False)
+class StoredPyramid:
+    """A building's label-free search pyramid (pyramid.npy; `cadreg.localize.bbs.GridPyramid.stored`): grids
+    (levels + 1, cells) uint8, its max-pooled score grids one level a row, and layout, where the grid lies and what it
+    was built with (`built_with`: the map's up and the search's settings). Built when the site is composed, so that
+    a worker whose settings are those maps it rather than building its own (`Localizer.pyramid`)."""
+
+    grids: np.ndarray
+    layout: dict[str, Any]
+
+
 @dataclass(eq=False)  # arrays inside: compare sites by version, not with ==
 class Site:
     """A site, in memory.
@@ -131,7 +147,8 @@ class Site:
     manifest : the parsed site.json (for a site not yet saved: what site.json will hold).
     mapped_rows : for a memory-mapped site (`load(mapped=True)`, a building by default), where each cloud's rows lie
     in its file, for `release`. field_grid : a building's stored distance field (field.npy), or None.
-    region_grids : a building's stored region grids (regions.npy), or None.
+    region_grids : a building's stored region grids (regions.npy), or None. pyramid : a building's stored
+    label-free search pyramid (pyramid.npy), or None.
     """
 
     site_id: str
@@ -145,6 +162,7 @@ class Site:
     mapped_rows: dict[str, MappedRows] = field(default_factory=dict, repr=False)
     field_grid: FieldGrid | None = None  # a building's stored distance field (field.npy); None: built at load
     region_grids: RegionGrids | None = None  # a building's stored region grids (regions.npy); None: built on use
+    pyramid: StoredPyramid | None = None  # a building's stored search pyramid (pyramid.npy); None: built on use
 
     def release(self, which: str, rows: slice) -> None:
         """Hand back the pages of rows of a memory-mapped cloud ("map" | "raw") once they have been copied; nothing
@@ -213,6 +231,8 @@ class Site:
             files["field.npy"] = npy_bytes(self.field_grid.grid)
         if self.region_grids is not None:
             files["regions.npy"] = npy_bytes(self.region_grids.points)
+        if self.pyramid is not None:
+            files["pyramid.npy"] = npy_bytes(self.pyramid.grids)
         return files
 
     def refresh_version(self) -> dict[str, bytes]:
@@ -228,6 +248,9 @@ class Site:
         meta.pop("region_grids", None)
         if self.region_grids is not None:
             meta["region_grids"] = self.region_grids.to_manifest()
+        meta.pop("pyramid", None)
+        if self.pyramid is not None:
+            meta["pyramid"] = self.pyramid.layout
         regions = meta.get("regions")
         if not regions or len(regions) == 1:
             # One region is the whole site: measured again from the clouds as they are now (a site whose clouds
@@ -297,6 +320,7 @@ class Site:
             raw = PointSet.from_ply_bytes(blobs["raw.ply"], root / "raw.ply")
         stored_field = _stored_field(root, meta) if "field.npy" in meta["files"] else None
         stored_grids = _stored_region_grids(root, meta) if "regions.npy" in meta["files"] else None
+        stored_pyramid = _stored_pyramid(root, meta) if "pyramid.npy" in meta["files"] else None
         try:
             graph = SemanticGraph.from_dict(json.loads(blobs["graph.json"]))
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
@@ -313,7 +337,7 @@ class Site:
                 rows[which].release(slice(0, len(cloud)))
         site = cls(site_id=str(meta["site_id"]), version=str(meta["version"]), manifest=meta, map=enhanced, raw=raw,
                    graph=graph, classes=classes, label_maps=label_maps, mapped_rows=rows, field_grid=stored_field,
-                   region_grids=stored_grids)
+                   region_grids=stored_grids, pyramid=stored_pyramid)
         if meta.get("regions"):
             from_manifest(meta["regions"], map_points=len(enhanced), raw_points=len(raw), source=str(meta_path))
         try:
@@ -373,10 +397,54 @@ def _stored_region_grids(root: Path, meta: dict[str, Any]) -> RegionGrids:
     return RegionGrids(points, offsets, cloud, halo_m, voxel_m, tree_leaf)
 
 
+# The keys of site.json's "pyramid" (`GridPyramid.stored`'s layout): checked at load, so that a malformed one names
+# its file rather than failing a worker's search.
+PYRAMID_KEYS = ("built_with", "R_level_map", "levels", "voxel_m", "reach_m", "margin", "pad", "dims", "inner",
+                "origin", "map_lo_level", "map_hi_level")
+
+
+def _stored_pyramid(root: Path, meta: dict[str, Any]) -> StoredPyramid:
+    """The pyramid.npy of a bundle, memory-mapped and checked against site.json's "pyramid"."""
+    path = root / "pyramid.npy"
+    grids = map_npy(path)
+    try:
+        layout = meta["pyramid"]
+        missing = [k for k in PYRAMID_KEYS if k not in layout]
+        if missing:
+            raise KeyError(*missing)
+        levels, dims = int(layout["levels"]), [int(x) for x in layout["dims"]]
+        ok = (len(dims) == 3 and min(dims) > 0 and levels >= 1 and len(layout["R_level_map"]) == 9
+              and len(layout["built_with"]["up"]) == 3)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InvalidFileError(root / "site.json", f"malformed 'pyramid': {exc!r}") from None
+    if not ok:
+        raise InvalidFileError(root / "site.json", "malformed 'pyramid': its levels, dims, rotation or up")
+    if grids.dtype != np.uint8 or grids.shape != (levels + 1, int(np.prod(dims))):
+        raise InvalidFileError(path, "not the grids site.json's 'pyramid' describes")
+    return StoredPyramid(grids, layout)
+
+
 def whole_site_region(site: Site, region_id: str | None = None) -> Region:
     """One region holding all of `site`, named `region_id` (default: after the site)."""
     return region_from_points(region_id or site.site_id, [site.map.points, site.raw.points],
                               [n.id for n in site.graph.nodes], (0, len(site.map)), (0, len(site.raw)))
+
+
+def _check_file(path: Path, sha256: str, keep: bool,
+                checked: tuple[str, tuple[int, ...]] | None) -> tuple[bytes | None, tuple[str, tuple[int, ...]] | None]:
+    """(the file's bytes if `keep`, else None; (sha256, stamp) to trust it by, or None) of a bundle file that
+    site.json lists with `sha256`; BundleIntegrityError when its bytes do not match. A file not kept whose listed
+    hash and stamp are `checked` is taken as checked, unread."""
+    stamp = file_stamp(path)
+    if not keep and checked == (sha256, stamp):
+        return None, checked
+    blob = read_bytes(path) if keep else None
+    if (sha256_file(path) if blob is None else sha256_bytes(blob)) != sha256:
+        raise BundleIntegrityError(path, "sha256 does not match site.json: the file was modified or belongs to "
+                                   "another build")
+    # The stamp stands for the bytes hashed only if nothing wrote the file meanwhile, nor just before.
+    settled = file_stamp(path) == stamp and time.time_ns() - max(stamp[3], stamp[4]) > SETTLED_NS
+    return blob, (sha256, stamp) if settled else None
 
 
 def _read_checked(root: Path, *, verify: bool, keep: tuple[str, ...] = DATA_FILES,
@@ -400,19 +468,15 @@ def _read_checked(root: Path, *, verify: bool, keep: tuple[str, ...] = DATA_FILE
     blobs: dict[str, bytes] = {}
     found: FileChecks = {}
     if verify:
-        for name in sorted(hashes):
-            path = root / name
-            stamp = file_stamp(path)
-            if name not in keep and checked is not None and checked.get(name) == (hashes[name], stamp):
-                found[name] = checked[name]
-                continue
-            blob = read_bytes(path) if name in keep else None
-            if (sha256_file(path) if blob is None else sha256_bytes(blob)) != hashes[name]:
-                raise BundleIntegrityError(path, "sha256 does not match site.json: the file was modified "
-                                           "or belongs to another build")
-            if blob is not None:
-                blobs[name] = blob
-            # The stamp stands for the bytes hashed only if nothing wrote the file meanwhile, nor just before.
-            if file_stamp(path) == stamp and time.time_ns() - max(stamp[3], stamp[4]) > SETTLED_NS:
-                found[name] = (hashes[name], stamp)
+        # hashlib lets go of the GIL while it hashes: a bundle's files are checked side by side (a server's parent
+        # checks 1.3 GB for 100 rooms before its workers start, while the other cores wait).
+        with ThreadPoolExecutor(max_workers=HASH_THREADS) as pool:
+            checks = [(name, pool.submit(_check_file, root / name, hashes[name], name in keep,
+                                         None if checked is None else checked.get(name))) for name in sorted(hashes)]
+            for name, future in checks:  # the first bad file in name order is the one named
+                blob, stamped = future.result()
+                if blob is not None:
+                    blobs[name] = blob
+                if stamped is not None:
+                    found[name] = stamped
     return meta, blobs, found
