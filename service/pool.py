@@ -127,7 +127,7 @@ class WorkerPool:
 
     sites : {site_id: bundle directory} loaded by every worker at start (and by every replacement).
     checked : {site_id: what the parent's hash check of the bundle found} (`Site.check_files`): a worker does not
-    hash again a file that has not changed since.
+    hash again a file it maps that has not changed since.
     localize_config : the algorithm's parameters, sent as the object itself to every worker (and replacement).
     """
 
@@ -144,8 +144,8 @@ class WorkerPool:
         test_hooks: bool = False,
         checked: dict[str, FileChecks] | None = None,
     ) -> None:
-        self._sites = dict(sites)
-        self._checked = {sid: c for sid, c in (checked or {}).items() if sid in self._sites}
+        # {site_id: (bundle directory, what the parent's check of it found)}: what every worker loads
+        self._sites = {sid: (path, (checked or {}).get(sid)) for sid, path in sites.items()}
         self._n = workers
         self._queue_depth = queue_depth
         self._timeout_s = timeout_s
@@ -276,8 +276,7 @@ class WorkerPool:
         future: concurrent.futures.Future = concurrent.futures.Future()
 
         def adopt() -> None:  # lock held
-            self._sites[site_id] = path
-            self._checked[site_id] = checked or {}
+            self._sites[site_id] = (path, checked)
 
         with self._lock:
             job_id = next(self._ids)
@@ -311,7 +310,7 @@ class WorkerPool:
     def site_paths(self) -> dict[str, str]:
         """{site_id: bundle directory} that a replacement worker loads."""
         with self._lock:
-            return dict(self._sites)
+            return {sid: path for sid, (path, _) in self._sites.items()}
 
     def kill_worker(self, slot: int) -> None:
         """SIGKILL one worker (used by the debug route in tests)."""
@@ -389,7 +388,7 @@ class WorkerPool:
     def _spawn(self, w: _Worker) -> None:
         """Start a process for slot `w` (lock held)."""
         parent_conn, child_conn = self._ctx.Pipe(duplex=True)
-        sites = [(sid, path, self._checked.get(sid)) for sid, path in sorted(self._sites.items())]
+        sites = [(sid, path, checked) for sid, (path, checked) in sorted(self._sites.items())]
         process = self._ctx.Process(
             target=worker_main,
             args=(child_conn, sites, self._localize_config, self._test_hooks, w.slot),

@@ -20,7 +20,7 @@ the functions. Messages (tuples over a `multiprocessing` Pipe; pydantic models t
                        ("failed", error_body)              start-up failed (a site could not be loaded)
 
 `checked` is what the parent's hash check of the bundle found (`cadreg.site.bundle.FileChecks`, or None): the worker
-hashes only the files that changed since.
+does not hash again a file it maps that has not changed since.
 """
 
 from __future__ import annotations

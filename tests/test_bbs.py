@@ -5,14 +5,16 @@ from __future__ import annotations
 
 import functools
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from cadreg.geometry import pose_errors, rotation_between
 from cadreg.localize.bbs import (SCALE, GridPyramid, YawPlaces, all_yaws, axial_histogram, built_with,
-                                 frame_direction_histogram, matches, polish, turned_histogram, yaws_allowed)
+                                 frame_direction_histogram, polish, turned_histogram, yaws_allowed)
 from cadreg.localize.score import DistanceField
+from cadreg.site.bundle import StoredPyramid
 from cadreg.site.layout import turn_about_z
 
 
@@ -78,30 +80,36 @@ def test_search_recovers_a_synthetic_pose() -> None:
 
 
 def test_a_stored_pyramid_comes_back_as_built_and_serves_only_the_settings_it_was_built_with() -> None:
-    """A bundle stores a building's pyramid (`stored`) and a worker maps it (`from_stored`) when its up and settings
-    are those it was built with (`matches`): the same grids, the same layout, the same search."""
+    """A bundle stores a building's pyramid (`to_stored`) and a worker maps it (`from_stored`) when its up and
+    settings are those it was built with: the same grids, the same layout, the same search. Its layout is derived
+    from what it was built with and the map's box, never read, so that it cannot disagree with its grids."""
     rng = np.random.default_rng(1)
     room = _room(rng)
     up = np.array([0.0, 0.0, 1.0])
-    pyr = GridPyramid(DistanceField(room, voxel_m=0.05), room, up, voxel_m=0.1, levels=3, reach_m=2.0)
-    grids, layout = pyr.stored()
-    assert grids.shape == (4, int(np.prod(pyr.dims))) and grids.dtype == np.uint8
-    grids.flags.writeable = False  # as a bundle maps it
-    back = GridPyramid.from_stored(grids, json.loads(json.dumps(layout)))  # through site.json
+    settings = {"voxel_m": 0.1, "levels": 3, "tau_m": 0.15, "reach_m": 2.0, "margin_m": 1.0, "max_cells": 32_000_000}
+    pyr = GridPyramid(DistanceField(room, voxel_m=0.05), room, up, **settings)
+    stored = pyr.to_stored()
+    assert stored.grids.shape == (4, int(np.prod(pyr.dims))) and stored.grids.dtype == np.uint8
+    stored.grids.flags.writeable = False  # as a bundle maps it
+    manifest = json.loads(json.dumps(stored.to_manifest()))  # through site.json
+    read = StoredPyramid(stored.grids, manifest["built_with"], np.array(manifest["map_lo_level"]),
+                         np.array(manifest["map_hi_level"]))
+    wanted = built_with(up + 1e-12, **settings)  # another machine's estimate of the same up
+    back = GridPyramid.from_stored(read, wanted)
+    assert back is not None
     for name in ("R_level_map", "dims", "inner", "origin", "strides", "map_lo_level", "map_hi_level"):
         assert np.array_equal(getattr(back, name), getattr(pyr, name)), name
     assert (back.levels, back.voxel_m, back.reach_m, back.margin, back.pad) == (
         pyr.levels, pyr.voxel_m, pyr.reach_m, pyr.margin, pyr.pad)
-    assert all(np.array_equal(a, b) for a, b in zip(back.grids, pyr.grids)) and np.shares_memory(back.grids[1], grids)
+    assert all(np.array_equal(a, b) for a, b in zip(back.grids, pyr.grids)) and np.shares_memory(back.grids[1], read.grids)
     local = room[rng.choice(len(room), 150, replace=False)] - [2.0, 1.0, 1.4]
     found, again = (p.search(local, np.radians(np.arange(0, 360, 10.0))) for p in (pyr, back))
     assert np.array_equal(found[0], again[0]) and np.array_equal(found[1], again[1])
-    with pytest.raises(ValueError, match="not the layout's"):
-        GridPyramid.from_stored(grids[:3], layout)
-    wanted = built_with(up + 1e-12, voxel_m=0.1, levels=3, tau_m=0.15, reach_m=2.0, margin_m=1.0, max_cells=32_000_000)
-    assert matches(layout["built_with"], wanted)
-    assert not matches(layout["built_with"], {**wanted, "tau_m": 0.2})
-    assert not matches(layout["built_with"], {**wanted, "up": [0.0, 1e-3, 1.0]})
+    # other settings, another up, or grids that are not the shape the layout gives: not this pyramid
+    assert GridPyramid.from_stored(read, {**wanted, "tau_m": 0.2}) is None
+    assert GridPyramid.from_stored(read, built_with([0.0, 1e-3, 1.0], **settings)) is None
+    assert GridPyramid.from_stored(replace(read, grids=read.grids[:, :-1]), wanted) is None
+    assert GridPyramid.from_stored(replace(read, map_hi_level=read.map_hi_level + 0.5), wanted) is None
 
 
 def _turn(deg: float) -> np.ndarray:

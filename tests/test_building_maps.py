@@ -82,10 +82,13 @@ def test_a_worker_maps_the_stored_pyramid_when_its_settings_are_those_it_was_bui
     built = Localizer.from_site(unstored).pyramid()[0]
     assert not np.shares_memory(built.grids[0], site.pyramid.grids)
     assert all(np.array_equal(a, b) for a, b in zip(mapped.grids, built.grids)) and len(mapped.grids) == len(built.grids)
-    assert mapped.stored()[1] == built.stored()[1]
-    # other settings: the stored pyramid is not theirs, and it is left alone
+    assert mapped.to_stored().to_manifest() == built.to_stored().to_manifest()
+    # other settings, or another up: the stored pyramid is not theirs, and it is left alone
     other = Localizer.from_site(site, LocalizeConfig(label_free=LabelFreeConfig(tau_m=0.2))).pyramid()[0]
     assert not np.shares_memory(other.grids[0], site.pyramid.grids) and other.built_with["tau_m"] == 0.2
+    tilted = Site.load(twin_rooms_dir)
+    tilted.pyramid = replace(tilted.pyramid, built_with={**tilted.pyramid.built_with, "up": [0.0, 0.01, 1.0]})
+    assert not np.shares_memory(Localizer.from_site(tilted).pyramid()[0].grids[0], site.pyramid.grids)
     # the grids are hashed like every file, and site.json's layout is checked
     bad = tmp_path / "bad"
     shutil.copytree(twin_rooms_dir, bad)
@@ -96,9 +99,9 @@ def test_a_worker_maps_the_stored_pyramid_when_its_settings_are_those_it_was_bui
         Site.load(bad)
     shutil.copy(twin_rooms_dir / "pyramid.npy", bad / "pyramid.npy")
     meta = json.loads((bad / "site.json").read_text())
-    del meta["pyramid"]["dims"]
+    del meta["pyramid"]["map_lo_level"]
     (bad / "site.json").write_text(json.dumps(meta))
-    with pytest.raises(InvalidFileError, match="site.json: malformed 'pyramid'.*dims"):
+    with pytest.raises(InvalidFileError, match="site.json: malformed 'pyramid'.*map_lo_level"):
         Site.load(bad)
 
 

@@ -231,7 +231,7 @@ def test_a_manifest_without_counts_is_refused(scene0470_site_dir, tmp_path) -> N
     bundle = tmp_path / SITE
     shutil.copytree(scene0470_site_dir, bundle)
     meta = json.loads((bundle / "site.json").read_text())
-    del meta["counts"]  # not among the keys read_manifest checks: the registry needs it
+    del meta["counts"]  # not among the keys Site.check_files checks: the registry needs it
     (bundle / "site.json").write_text(json.dumps(meta))
     with pytest.raises(InvalidFileError, match="counts"):
         inspect_bundle(bundle)

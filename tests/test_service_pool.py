@@ -181,3 +181,23 @@ def test_overload_says_how_long_the_queue_takes_to_drain(pool, envelope) -> None
     finally:
         for f in held:
             f.result(60)
+
+
+def test_a_worker_loads_a_building_without_hashing_again_what_the_parents_check_found(twin_rooms_dir: Path,
+                                                                                      monkeypatch) -> None:
+    """The worker's side of the hand-over, in this process: given the parent's findings, a building's mapped clouds
+    and stored grids (1.3 GB for 100 rooms) are not hashed again; graph.json, read whole, is hashed from its bytes."""
+    import cadreg.site.bundle as bundle
+    from cadreg.config import LocalizeConfig
+    from service.registry import inspect_bundle
+    from service.worker import _Sites
+
+    time.sleep(bundle.SETTLED_NS / 1e9 + 0.1)
+    entry = inspect_bundle(twin_rooms_dir)
+    assert {"map.ply", "raw.ply", "field.npy", "regions.npy", "pyramid.npy"} <= set(entry.checked)
+    hashed: list[str] = []
+    real = bundle.sha256_file
+    monkeypatch.setattr(bundle, "sha256_file", lambda path: hashed.append(Path(path).name) or real(path))
+    version, _ = _Sites(LocalizeConfig(label_free={"enabled": False})).build(entry.site_id, str(twin_rooms_dir),
+                                                                             entry.checked)
+    assert version == entry.version and hashed == []

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import time
 from pathlib import Path
@@ -12,7 +13,7 @@ import pytest
 
 from cadreg.errors import BundleIntegrityError, ConfigError, InvalidFileError, InvalidFrame
 from cadreg.site.build import site_from_labelled_points
-from cadreg.site.bundle import DATA_FILES, SETTLED_NS, Site
+from cadreg.site.bundle import DATA_FILES, SETTLED_NS, FileCheck, Site
 
 COLUMNS = ("points", "colors", "normals", "instance", "class_index", "source")
 
@@ -202,7 +203,7 @@ def test_files_another_process_checked_are_not_hashed_again_unless_they_changed(
     Site.load(tmp_path / "b", mapped=True)
     assert sorted(hashed) == ["map.ply", "raw.ply"]
     hashed.clear()
-    Site.load(tmp_path / "b", mapped=True, checked={**checked, "raw.ply": ("0" * 64, checked["raw.ply"][1])})
+    Site.load(tmp_path / "b", mapped=True, checked={**checked, "raw.ply": FileCheck("0" * 64, checked["raw.ply"].stamp)})
     assert hashed == ["raw.ply"]
     # a file written since the check is hashed again, and refused when its bytes differ (same size, one bit)
     original = (tmp_path / "b" / "raw.ply").read_bytes()
@@ -213,10 +214,42 @@ def test_files_another_process_checked_are_not_hashed_again_unless_they_changed(
     with pytest.raises(BundleIntegrityError, match="raw.ply: sha256 does not match"):
         Site.load(tmp_path / "b", mapped=True, checked=checked)
     assert hashed == ["raw.ply"]
-    # written back as it was: it passes, but a check right after the write gives it no stamp to trust
+    # written back as it was, it is hashed again (its stamp moved) and passes
     (tmp_path / "b" / "raw.ply").write_bytes(original)
+    # other bytes of the same size with the modification time set back: the change time still tells
+    stamp = checked["map.ply"].stamp
+    blob = bytearray((tmp_path / "b" / "map.ply").read_bytes())
+    blob[-1] ^= 0x01
+    (tmp_path / "b" / "map.ply").write_bytes(bytes(blob))
+    os.utime(tmp_path / "b" / "map.ply", ns=(stamp.mtime_ns, stamp.mtime_ns))
+    hashed.clear()
+    with pytest.raises(BundleIntegrityError, match="map.ply: sha256 does not match"):
+        Site.load(tmp_path / "b", mapped=True, checked=checked)
+    assert sorted(hashed) == ["map.ply", "raw.ply"]
+    # written back as they were: they pass, but a check right after the writes gives them no stamp to trust
+    blob[-1] ^= 0x01
+    (tmp_path / "b" / "map.ply").write_bytes(bytes(blob))
     _, fresh = Site.check_files(tmp_path / "b")
-    assert set(fresh) == set(DATA_FILES) - {"raw.ply"}
+    assert set(fresh) == set(DATA_FILES) - {"raw.ply", "map.ply"}
+
+
+def test_a_file_written_while_it_was_hashed_gets_no_stamp(small_site, tmp_path, monkeypatch):
+    import cadreg.site.bundle as bundle
+
+    small_site.save(tmp_path / "b")
+    time.sleep(SETTLED_NS / 1e9 + 0.1)
+    real = bundle.file_stamp
+    seen: dict[str, int] = {}
+
+    def moving(path):  # raw.ply's second stamp (after its hash) differs: something wrote it meanwhile
+        name = Path(path).name
+        seen[name] = seen.get(name, 0) + 1
+        stamp = real(path)
+        return stamp._replace(ctime_ns=stamp.ctime_ns + 1) if name == "raw.ply" and seen[name] > 1 else stamp
+
+    monkeypatch.setattr(bundle, "file_stamp", moving)
+    _, checked = Site.check_files(tmp_path / "b")
+    assert set(checked) == set(DATA_FILES) - {"raw.ply"}
 
 
 def test_a_stated_up_is_read_back_and_a_malformed_one_refused(small_site, tmp_path):

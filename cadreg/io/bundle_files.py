@@ -12,21 +12,30 @@ import json
 import os
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from ..errors import InvalidFileError
 
 
-def file_stamp(path: str | Path) -> tuple[int, int, int, int, int]:
-    """(device, inode, size, modification and change times in ns) of a file: a write to it, or another file put in
-    its place, changes one of them (the kernel sets the change time; no user can set it back)."""
+class FileStamp(NamedTuple):
+    """What the file system says of a file: a write to it, or another file put in its place, changes one of these
+    (the kernel sets the change time; no user can set it back)."""
+
+    device: int
+    inode: int
+    size: int
+    mtime_ns: int
+    ctime_ns: int
+
+
+def file_stamp(path: str | Path) -> FileStamp:
     try:
         st = os.stat(path)
     except OSError as exc:
         raise InvalidFileError(path, f"cannot read: {exc.strerror or exc}") from exc
-    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+    return FileStamp(st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
 
 
 def sha256_bytes(data: bytes) -> str:

@@ -24,7 +24,9 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import binary_dilation
 
+from ..config import LabelFreeConfig
 from ..geometry import rotation_between
+from ..site.bundle import StoredPyramid
 from . import field_kernels
 from .match import Hypotheses, distinct_best
 from .score import DistanceField
@@ -61,29 +63,18 @@ class GridPyramid:
     map holds only what is ahead of it).
     max_cells : cap on the cells of one level; the voxel grows until it fits (memory is (levels + 1) bytes a cell).
 
-    A building's bundle stores its pyramid (`stored`, `from_stored`; `site.bundle.StoredPyramid`): a worker maps it
-    rather than building it at start (2 s and 95 MB of its own for 100 rooms).
+    A building's bundle stores its pyramid (`to_stored`, `from_stored`; `site.bundle.StoredPyramid`): a worker maps
+    it rather than building it at start (2 s and 95 MB of its own for 100 rooms).
     """
 
     def __init__(self, field: DistanceField, map_xyz: np.ndarray, up: np.ndarray, *, voxel_m: float = 0.1,
                  levels: int = 4, tau_m: float = 0.15, reach_m: float = 4.0, margin_m: float = 1.0,
                  max_cells: int = 32_000_000) -> None:
-        self.built_with = built_with(up, voxel_m=voxel_m, levels=levels, tau_m=tau_m, reach_m=reach_m,
-                                     margin_m=margin_m, max_cells=max_cells)
-        self.R_level_map = rotation_between(np.asarray(up, float), np.array([0.0, 0.0, 1.0]))
-        p = np.asarray(map_xyz, dtype=np.float64) @ self.R_level_map.T
-        lo, hi = p.min(axis=0), p.max(axis=0)
-        self.levels = int(levels)
-        voxel_m = pyramid_voxel(hi - lo, voxel_m=voxel_m, levels=levels, reach_m=reach_m, margin_m=margin_m,
-                                max_cells=max_cells)
-        self.margin, self.pad, inner, dims = _layout(hi - lo, voxel_m, levels, reach_m, margin_m)
-        self.voxel_m = float(voxel_m)
-        self.reach_m = float(reach_m)
-        self.dims = dims
-        self.inner = inner  # map cells: the camera's (x, y) stays over the map
-        self.origin = lo - self.pad * voxel_m  # level frame position of cell (0, 0, 0)'s corner
-        self.map_lo_level, self.map_hi_level = lo, hi
-        self.strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
+        settings = built_with(up, voxel_m=voxel_m, levels=levels, tau_m=tau_m, reach_m=reach_m, margin_m=margin_m,
+                              max_cells=max_cells)
+        p = np.asarray(map_xyz, dtype=np.float64) @ _level_rotation(settings).T
+        self._place(settings, p.min(axis=0), p.max(axis=0))
+        voxel_m, dims = self.voxel_m, self.dims
         # Finest level: the score at each cell centre, from the exact distance field (looked up in the map frame).
         # Only cells within tau of a map point can score: those (the occupied cells grown by tau) are looked up,
         # a tenth of the grid or less, so that building the pyramid costs a fraction of a second.
@@ -116,37 +107,43 @@ class GridPyramid:
             self.grids.append(g.ravel())
         self.nbytes = sum(x.nbytes for x in self.grids)
 
+    def _place(self, settings: dict[str, Any], lo: np.ndarray, hi: np.ndarray) -> None:
+        """The grid's layout over a map whose box in the level frame is lo..hi, for `built_with`'s settings: the
+        same for a pyramid built and for one read back (`from_stored` derives it rather than reading it, so that
+        what a bundle stores cannot disagree with itself)."""
+        self.built_with = settings
+        self.R_level_map = _level_rotation(settings)
+        self.levels = int(settings["levels"])
+        self.reach_m = float(settings["reach_m"])
+        extent = hi - lo
+        self.voxel_m = pyramid_voxel(extent, voxel_m=settings["voxel_m"], levels=self.levels, reach_m=self.reach_m,
+                                     margin_m=settings["margin_m"], max_cells=settings["max_cells"])
+        self.margin, self.pad, self.inner, self.dims = _layout(extent, self.voxel_m, self.levels, self.reach_m,
+                                                               settings["margin_m"])
+        # inner: the map's cells (the camera's (x, y) stays over the map); origin: cell (0, 0, 0)'s corner
+        self.origin = lo - self.pad * self.voxel_m
+        self.map_lo_level, self.map_hi_level = lo, hi
+        self.strides = np.array([self.dims[1] * self.dims[2], self.dims[2], 1], dtype=np.int64)
+
     # ------------------------------------------------------------------------------------------------------------
-    def stored(self) -> tuple[np.ndarray, dict[str, Any]]:
-        """(grids, layout) as a bundle stores them: grids (levels + 1, cells) uint8, one row per level; layout the
-        grid's place and what it was built with (`built_with`), as JSON. `from_stored` gives this pyramid back."""
-        layout = {"built_with": self.built_with, "R_level_map": self.R_level_map.ravel().tolist(),
-                  "levels": self.levels, "voxel_m": self.voxel_m, "reach_m": self.reach_m, "margin": self.margin,
-                  "pad": self.pad, "dims": self.dims.tolist(), "inner": self.inner.tolist(),
-                  "origin": self.origin.tolist(), "map_lo_level": self.map_lo_level.tolist(),
-                  "map_hi_level": self.map_hi_level.tolist()}
-        return np.stack(self.grids), layout
+    def to_stored(self) -> StoredPyramid:
+        """This pyramid as a bundle stores it: its grids one level a row, what it was built with and the map's box
+        (`from_stored` gives it back)."""
+        return StoredPyramid(np.stack(self.grids), self.built_with, self.map_lo_level, self.map_hi_level)
 
     @classmethod
-    def from_stored(cls, grids: np.ndarray, layout: dict[str, Any]) -> "GridPyramid":
-        """The pyramid `stored` gave (grids, layout); the grids are used where they lie (a bundle's memory map)."""
+    def from_stored(cls, stored: StoredPyramid, wanted: dict[str, Any]) -> "GridPyramid | None":
+        """The pyramid a bundle stores, its grids used where they lie (a memory map), when it is the one this code
+        would build for `wanted` (`built_with`): the same settings and up (`StoredPyramid.matches`), and grids of
+        the shape its layout gives (a bundle of another version of this code may differ); else None."""
+        if not stored.matches(wanted):
+            return None
         pyr = cls.__new__(cls)
-        pyr.built_with = dict(layout["built_with"])
-        pyr.R_level_map = np.asarray(layout["R_level_map"], dtype=np.float64).reshape(3, 3)
-        pyr.levels = int(layout["levels"])
-        pyr.voxel_m, pyr.reach_m = float(layout["voxel_m"]), float(layout["reach_m"])
-        pyr.margin, pyr.pad = int(layout["margin"]), int(layout["pad"])
-        pyr.dims = np.asarray(layout["dims"], dtype=np.int64).reshape(3)
-        pyr.inner = np.asarray(layout["inner"], dtype=np.int64).reshape(3)
-        pyr.origin = np.asarray(layout["origin"], dtype=np.float64).reshape(3)
-        pyr.map_lo_level = np.asarray(layout["map_lo_level"], dtype=np.float64).reshape(3)
-        pyr.map_hi_level = np.asarray(layout["map_hi_level"], dtype=np.float64).reshape(3)
-        pyr.strides = np.array([pyr.dims[1] * pyr.dims[2], pyr.dims[2], 1], dtype=np.int64)
-        if grids.dtype != np.uint8 or grids.shape != (pyr.levels + 1, int(np.prod(pyr.dims))):
-            raise ValueError(f"grids of shape {grids.shape} and type {grids.dtype}, not the layout's "
-                             f"({pyr.levels + 1}, {int(np.prod(pyr.dims))}) uint8")
-        pyr.grids = list(grids)
-        pyr.nbytes = int(grids.nbytes)
+        pyr._place(dict(stored.built_with), stored.map_lo_level, stored.map_hi_level)
+        if stored.grids.dtype != np.uint8 or stored.grids.shape != (pyr.levels + 1, int(np.prod(pyr.dims))):
+            return None
+        pyr.grids = list(stored.grids)
+        pyr.nbytes = int(stored.grids.nbytes)
         return pyr
 
     # ------------------------------------------------------------------------------------------------------------
@@ -290,17 +287,28 @@ class GridPyramid:
 def built_with(up: np.ndarray, *, voxel_m: float, levels: int, tau_m: float, reach_m: float, margin_m: float,
                max_cells: int) -> dict[str, Any]:
     """What a pyramid is built from, besides the site's field and points (JSON): a stored pyramid serves a localizer
-    whose up and settings give the same (`matches`)."""
+    whose up and settings give the same (`StoredPyramid.matches`)."""
     return {"up": [float(x) for x in np.asarray(up, dtype=np.float64).reshape(3)], "voxel_m": float(voxel_m),
             "levels": int(levels), "tau_m": float(tau_m), "reach_m": float(reach_m), "margin_m": float(margin_m),
             "max_cells": int(max_cells)}
 
 
-def matches(stored: dict[str, Any], wanted: dict[str, Any]) -> bool:
-    """Whether a stored pyramid's `built_with` is the one wanted: the settings exactly, the up within rounding (one
-    machine's up estimate and another's may differ in the last bits; no cell moves for that)."""
-    same = {k: v for k, v in stored.items() if k != "up"} == {k: v for k, v in wanted.items() if k != "up"}
-    return same and bool(np.allclose(stored["up"], wanted["up"], rtol=0.0, atol=1e-9))
+def pyramid_settings(lf: LabelFreeConfig) -> dict[str, Any]:
+    """`GridPyramid`'s keyword settings from the label-free search's config."""
+    return {"voxel_m": lf.voxel_m, "levels": lf.levels, "tau_m": lf.tau_m, "reach_m": lf.reach_m,
+            "margin_m": lf.camera_margin_m, "max_cells": lf.max_cells}
+
+
+def building_pyramid(field: DistanceField, up: np.ndarray, lf: LabelFreeConfig) -> GridPyramid:
+    """A building's pyramid: its occupied cells read from its stored field (its points stay where they lie), one per
+    half a cell (`DistanceField.surface_points`). What `site compose` stores, and what a worker builds when the
+    bundle stores none for its settings."""
+    return GridPyramid(field, field.surface_points(lf.voxel_m / 2), up, **pyramid_settings(lf))
+
+
+def _level_rotation(settings: dict[str, Any]) -> np.ndarray:
+    """R_level_map of a pyramid built with `settings` (`built_with`): the map's up onto +z."""
+    return rotation_between(np.asarray(settings["up"], dtype=np.float64), np.array([0.0, 0.0, 1.0]))
 
 
 def pyramid_voxel(extent_m: np.ndarray, *, voxel_m: float, levels: int, reach_m: float, margin_m: float,

@@ -34,7 +34,8 @@ from ..site.bundle import Site
 from ..site.regions import Region
 from .cluster import cluster_objects
 from .color_gicp import rgb_to_lab
-from .bbs import GridPyramid, built_with, map_direction_histogram, matches, turned_histogram
+from .bbs import (GridPyramid, building_pyramid, built_with, map_direction_histogram, pyramid_settings,
+                  turned_histogram)
 from .building_views import SAME_PLACE_DEPTH_MARGIN, BuildingViews
 from . import cluster, field_kernels, gravity, grid_gicp, match, point_tree, view_kernels
 from . import points as frame_points
@@ -239,17 +240,14 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         if self._pyramid is None:
             lf = self.config.label_free
             surfaces = self.site.cloud("both") if len(self.maps) == 1 else None
-            wanted = built_with(self.up, voxel_m=lf.voxel_m, levels=lf.levels, tau_m=lf.tau_m, reach_m=lf.reach_m,
-                                margin_m=lf.camera_margin_m, max_cells=lf.max_cells)
-            stored = self.site.pyramid
-            if surfaces is None and stored is not None and matches(stored.layout["built_with"], wanted):
-                pyr = GridPyramid.from_stored(stored.grids, stored.layout)
+            if surfaces is not None:
+                pyr = GridPyramid(self.field, surfaces.points, self.up, **pyramid_settings(lf))
             else:
-                # A building's occupied cells come from its stored field: its points stay where they lie.
-                occupied = self.field.surface_points(lf.voxel_m / 2) if surfaces is None else surfaces.points
-                pyr = GridPyramid(self.field, occupied, self.up, voxel_m=lf.voxel_m, levels=lf.levels,
-                                  tau_m=lf.tau_m, reach_m=lf.reach_m, margin_m=lf.camera_margin_m,
-                                  max_cells=lf.max_cells)
+                stored = self.site.pyramid
+                wanted = built_with(self.up, **pyramid_settings(lf))
+                pyr = None if stored is None else GridPyramid.from_stored(stored, wanted)
+                if pyr is None:
+                    pyr = building_pyramid(self.field, self.up, lf)
             if surfaces is None:
                 walls, region_walls = self._building_wall_directions(pyr.R_level_map)
             else:

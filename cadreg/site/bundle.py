@@ -19,7 +19,8 @@ Bundle layout (DESIGN §3), self-describing, no pickle:
 graph.json (and field.npy, regions.npy, pyramid.npy when present): the same content gives the same version, a rebuilt or
 replaced site a new one.
 `Site.load` checks every hash and raises BundleIntegrityError naming the file that does not match (a file that
-another process's check found matching and that has not changed since counts as checked: `FileChecks`).
+another process's check found matching, that is not read whole and has not changed since, counts as checked:
+`FileChecks`).
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ import numpy as np
 
 from ..config import GraphConfig
 from ..errors import BundleIntegrityError, ConfigError, InvalidFileError, InvalidFrame
-from ..io.bundle_files import (file_stamp, map_npy, npy_bytes, read_bytes, read_json, sha256_bytes, sha256_file,
+from ..io.bundle_files import (FileStamp, file_stamp, map_npy, npy_bytes, read_bytes, read_json, sha256_bytes, sha256_file,
                                 write_bundle_dir)
 from ..io.ply import release_pages
 from ..labels import labels_to_class_index
@@ -49,14 +50,24 @@ OPTIONAL_FILES = ("field.npy", "regions.npy", "pyramid.npy")
 # A stored region grid's rows: position (map frame, metres), colour, class index (-1: none).
 REGION_GRID_DTYPE = np.dtype([("xyz", "<f4", (3,)), ("rgb", "u1", (3,)), ("cls", "<i2")])
 CLOUDS = ("raw", "enhanced", "both")
-# What a hash check of a bundle found (`Site.check_files`): per data file, its sha256 as site.json lists it and the
-# file's stamp (`file_stamp`) when it was hashed. `Site.load(..., checked=)` takes a file whose listed hash and stamp
-# are still these as checked rather than hash it again, as git's index does: a server's parent checks a bundle once
-# and each of its workers loads it (a 100-room bundle is 1.2 GB, a second of hashing for each).
-FileChecks = dict[str, tuple[str, tuple[int, ...]]]
-# A file changed less than this before it was hashed gets no stamp: file times tick coarsely (milliseconds), so a
-# write in the same tick right after the hash could leave the stamp as it was.
-SETTLED_NS = 1_000_000_000
+@dataclass(frozen=True)
+class FileCheck:
+    """A bundle file a hash check found matching: its sha256 as site.json lists it, and its stamp when it was
+    hashed."""
+
+    sha256: str
+    stamp: FileStamp
+
+
+# What a hash check of a bundle found (`Site.check_files`), by file name. `Site.load(..., checked=)` takes a file not
+# read whole whose listed hash and stamp are still these as checked rather than hash it again, as git's index does:
+# a server's parent checks a bundle once and each of its workers loads it (a 100-room bundle is 1.3 GB, a second of
+# hashing for each).
+FileChecks = dict[str, FileCheck]
+# A file changed less than this before its check began gets no stamp (git's "racy" rule): file times tick coarsely
+# (milliseconds here, seconds on some file systems), so a write in the same tick, while or right after it was hashed,
+# could leave its stamp as it was.
+SETTLED_NS = 2_000_000_000
 # Files hashed side by side when a bundle is checked.
 HASH_THREADS = 4
 
@@ -127,13 +138,27 @@ class RegionGrids:
 
 @dataclass(frozen=True, eq=False)
 class StoredPyramid:
-    """A building's label-free search pyramid (pyramid.npy; `cadreg.localize.bbs.GridPyramid.stored`): grids
-    (levels + 1, cells) uint8, its max-pooled score grids one level a row, and layout, where the grid lies and what it
-    was built with (`built_with`: the map's up and the search's settings). Built when the site is composed, so that
-    a worker whose settings are those maps it rather than building its own (`Localizer.pyramid`)."""
+    """A building's label-free search pyramid (pyramid.npy; `cadreg.localize.bbs.GridPyramid.to_stored`): grids
+    (levels + 1, cells) uint8, its max-pooled score grids one level a row; built_with, the map's up and the search's
+    settings it was built with (`bbs.built_with`); map_lo_level, map_hi_level (3,) the map's box in its level frame,
+    from which the grid's layout follows. Built when the site is composed, so that a worker whose settings are those
+    maps it rather than building its own (`GridPyramid.from_stored`)."""
 
     grids: np.ndarray
-    layout: dict[str, Any]
+    built_with: dict[str, Any]
+    map_lo_level: np.ndarray
+    map_hi_level: np.ndarray
+
+    def matches(self, wanted: dict[str, Any]) -> bool:
+        """Whether it was built with `wanted` (`bbs.built_with`): the settings exactly, the up within rounding (one
+        machine's estimate of a map's up and another's may differ in the last bits; no cell moves for that)."""
+        others = lambda d: {k: v for k, v in d.items() if k != "up"}  # noqa: E731
+        return others(self.built_with) == others(wanted) and bool(
+            np.allclose(self.built_with["up"], wanted["up"], rtol=0.0, atol=1e-9))
+
+    def to_manifest(self) -> dict[str, Any]:
+        return {"built_with": dict(self.built_with), "map_lo_level": [float(x) for x in self.map_lo_level],
+                "map_hi_level": [float(x) for x in self.map_hi_level]}
 
 
 @dataclass(eq=False)  # arrays inside: compare sites by version, not with ==
@@ -250,7 +275,7 @@ class Site:
             meta["region_grids"] = self.region_grids.to_manifest()
         meta.pop("pyramid", None)
         if self.pyramid is not None:
-            meta["pyramid"] = self.pyramid.layout
+            meta["pyramid"] = self.pyramid.to_manifest()
         regions = meta.get("regions")
         if not regions or len(regions) == 1:
             # One region is the whole site: measured again from the clouds as they are now (a site whose clouds
@@ -298,8 +323,9 @@ class Site:
         """Read and verify a bundle. Raises InvalidFileError (missing/malformed file) or BundleIntegrityError (a file
         whose sha256 differs from site.json, or a version that does not match the hashes), naming the file.
 
-        checked : what another process's check of this bundle found (`check_files`); a file whose hash in site.json
-        and stamp are still those it found is not hashed again. Every other file is.
+        checked : what another process's check of this bundle found (`check_files`); a file not read whole (a mapped
+        cloud, a stored grid) whose hash in site.json and stamp are still those it found is not hashed again. Every
+        other file is.
 
         mapped : memory-map map.ply and raw.ply instead of reading them (read-only columns, paged in as used; see
         `PointSet.open_ply`); None = for a site of several regions (a building: a worker touches the rooms it
@@ -397,31 +423,31 @@ def _stored_region_grids(root: Path, meta: dict[str, Any]) -> RegionGrids:
     return RegionGrids(points, offsets, cloud, halo_m, voxel_m, tree_leaf)
 
 
-# The keys of site.json's "pyramid" (`GridPyramid.stored`'s layout): checked at load, so that a malformed one names
-# its file rather than failing a worker's search.
-PYRAMID_KEYS = ("built_with", "R_level_map", "levels", "voxel_m", "reach_m", "margin", "pad", "dims", "inner",
-                "origin", "map_lo_level", "map_hi_level")
+# site.json's "pyramid"["built_with"]: each setting and its type (`bbs.built_with`).
+PYRAMID_SETTINGS = {"up": list, "voxel_m": float, "levels": int, "tau_m": float, "reach_m": float, "margin_m": float,
+                    "max_cells": int}
 
 
 def _stored_pyramid(root: Path, meta: dict[str, Any]) -> StoredPyramid:
-    """The pyramid.npy of a bundle, memory-mapped and checked against site.json's "pyramid"."""
+    """The pyramid.npy of a bundle, memory-mapped and checked against site.json's "pyramid" (whether its grids have
+    the shape their layout gives is `GridPyramid.from_stored`'s to say: it derives the layout)."""
     path = root / "pyramid.npy"
     grids = map_npy(path)
     try:
-        layout = meta["pyramid"]
-        missing = [k for k in PYRAMID_KEYS if k not in layout]
-        if missing:
-            raise KeyError(*missing)
-        levels, dims = int(layout["levels"]), [int(x) for x in layout["dims"]]
-        ok = (len(dims) == 3 and min(dims) > 0 and levels >= 1 and len(layout["R_level_map"]) == 9
-              and len(layout["built_with"]["up"]) == 3)
+        info = meta["pyramid"]
+        built = {key: kind(info["built_with"][key]) for key, kind in PYRAMID_SETTINGS.items()}
+        built["up"] = [float(x) for x in built["up"]]
+        lo, hi = (np.asarray(info[key], dtype=np.float64).reshape(3) for key in ("map_lo_level", "map_hi_level"))
+        ok = (len(built["up"]) == 3 and np.all(np.isfinite(np.concatenate([built["up"], lo, hi]))) and np.all(hi >= lo)
+              and built["voxel_m"] > 0 and 1 <= built["levels"] <= 7 and built["reach_m"] > 0
+              and built["margin_m"] >= 0 and built["max_cells"] > 0)
     except (KeyError, TypeError, ValueError) as exc:
         raise InvalidFileError(root / "site.json", f"malformed 'pyramid': {exc!r}") from None
     if not ok:
-        raise InvalidFileError(root / "site.json", "malformed 'pyramid': its levels, dims, rotation or up")
-    if grids.dtype != np.uint8 or grids.shape != (levels + 1, int(np.prod(dims))):
-        raise InvalidFileError(path, "not the grids site.json's 'pyramid' describes")
-    return StoredPyramid(grids, layout)
+        raise InvalidFileError(root / "site.json", "malformed 'pyramid': its up, box or settings")
+    if grids.dtype != np.uint8 or grids.ndim != 2 or grids.shape[0] != built["levels"] + 1:
+        raise InvalidFileError(path, "not the grids of the levels site.json's 'pyramid' describes")
+    return StoredPyramid(grids, built, lo, hi)
 
 
 def whole_site_region(site: Site, region_id: str | None = None) -> Region:
@@ -430,21 +456,21 @@ def whole_site_region(site: Site, region_id: str | None = None) -> Region:
                               [n.id for n in site.graph.nodes], (0, len(site.map)), (0, len(site.raw)))
 
 
-def _check_file(path: Path, sha256: str, keep: bool,
-                checked: tuple[str, tuple[int, ...]] | None) -> tuple[bytes | None, tuple[str, tuple[int, ...]] | None]:
-    """(the file's bytes if `keep`, else None; (sha256, stamp) to trust it by, or None) of a bundle file that
-    site.json lists with `sha256`; BundleIntegrityError when its bytes do not match. A file not kept whose listed
-    hash and stamp are `checked` is taken as checked, unread."""
+def _check_file(path: Path, sha256: str, keep: bool, checked: FileCheck | None,
+                began_ns: int) -> tuple[bytes | None, FileCheck | None]:
+    """(the file's bytes if `keep`, else None; what to trust it by later, or None) of a bundle file that site.json
+    lists with `sha256`, whose check began at began_ns (`time.time_ns`); BundleIntegrityError when its bytes do not
+    match. A file not kept whose listed hash and stamp are `checked`'s is taken as checked, unread."""
     stamp = file_stamp(path)
-    if not keep and checked == (sha256, stamp):
+    if not keep and checked == FileCheck(sha256, stamp):
         return None, checked
     blob = read_bytes(path) if keep else None
     if (sha256_file(path) if blob is None else sha256_bytes(blob)) != sha256:
         raise BundleIntegrityError(path, "sha256 does not match site.json: the file was modified or belongs to "
                                    "another build")
-    # The stamp stands for the bytes hashed only if nothing wrote the file meanwhile, nor just before.
-    settled = file_stamp(path) == stamp and time.time_ns() - max(stamp[3], stamp[4]) > SETTLED_NS
-    return blob, (sha256, stamp) if settled else None
+    # The stamp stands for the bytes hashed only if nothing wrote the file meanwhile, nor in the ticks before.
+    settled = file_stamp(path) == stamp and began_ns - max(stamp.mtime_ns, stamp.ctime_ns) > SETTLED_NS
+    return blob, FileCheck(sha256, stamp) if settled else None
 
 
 def _read_checked(root: Path, *, verify: bool, keep: tuple[str, ...] = DATA_FILES,
@@ -468,11 +494,13 @@ def _read_checked(root: Path, *, verify: bool, keep: tuple[str, ...] = DATA_FILE
     blobs: dict[str, bytes] = {}
     found: FileChecks = {}
     if verify:
+        began_ns = time.time_ns()
         # hashlib lets go of the GIL while it hashes: a bundle's files are checked side by side (a server's parent
         # checks 1.3 GB for 100 rooms before its workers start, while the other cores wait).
         with ThreadPoolExecutor(max_workers=HASH_THREADS) as pool:
             checks = [(name, pool.submit(_check_file, root / name, hashes[name], name in keep,
-                                         None if checked is None else checked.get(name))) for name in sorted(hashes)]
+                                         None if checked is None else checked.get(name), began_ns))
+                      for name in sorted(hashes)]
             for name, future in checks:  # the first bad file in name order is the one named
                 blob, stamped = future.result()
                 if blob is not None:

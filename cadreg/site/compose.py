@@ -39,9 +39,10 @@ from ..errors import ConfigError, InvalidFileError
 from ..geometry import is_rigid, transform_points
 from ..localize.gravity import map_floor_height
 from ..localize.regions import region_grids
-from ..localize.score import building_field
+from ..localize.bbs import building_pyramid
+from ..localize.score import DistanceField, building_field
 from ..pointset import PointSet
-from .bundle import Site, StoredPyramid
+from .bundle import Site
 from .corridor import corridor_cloud
 from .graph import ObjectNode, build_graph
 from .regions import region_from_points, to_manifest
@@ -350,12 +351,11 @@ def store_search_structures(site: Site) -> None:
       gridding them (a one-room site's localizer builds its one map at start, from the whole cloud);
     - with several regions, the label-free search's pyramid over the field, with the default settings: a worker
       maps it instead of building its own (2 s and 95 MB each for 100 rooms)."""
-    from ..localize.localizer import Localizer
-
     site.field_grid = building_field([np.concatenate([site.map.points[slice(*r.map_range)],
                                                       site.raw.points[slice(*r.raw_range)]]) for r in site.regions])
     site.pyramid = None
     if len(site.regions) > 1:
         lc = LocalizeConfig()
         site.region_grids = region_grids(site, site.regions, cloud=lc.refine.map_points, halo_m=lc.regions.halo_m)
-        site.pyramid = StoredPyramid(*Localizer.from_site(site, lc).pyramid()[0].stored())
+        if site.up is not None:  # (a building states its up: `compose`, `partition.py`)
+            site.pyramid = building_pyramid(DistanceField.from_grid(site.field_grid), site.up, lc.label_free).to_stored()
