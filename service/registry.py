@@ -5,9 +5,9 @@ The parent reads manifests, the workers load maps: at start every bundle under t
 point cloud is parsed) to learn its id, version and counts; only the workers parse the arrays. What the check found
 (each file's hash with its stamp) goes to the workers with the path: they do not hash again a file they map that
 has not changed since (an upload's files, written a moment before their check, get no stamp: the workers hash them).
-An upload is hash-checked once by the parent, on its staged copy. A reload validates the new bundle first, has every worker load
-it (they keep the old version for requests already dispatched), and only then swaps the registry entry: requests
-in flight finish on the old version, requests admitted after the swap carry the new one.
+An upload is hash-checked once by the parent, on its staged copy. A reload validates the new bundle first, has every
+worker load it (they keep the old version for requests already dispatched), and only then swaps the registry entry:
+requests in flight finish on the old version, requests admitted after the swap carry the new one.
 """
 
 from __future__ import annotations

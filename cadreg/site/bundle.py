@@ -16,8 +16,8 @@ Bundle layout (DESIGN §3), self-describing, no pickle:
                 worker whose settings are those it was built with, not built again in each
 
 `version` is the first 12 hex digits of the sha256 over the sorted "name:sha256" lines of map.ply, raw.ply,
-graph.json (and field.npy, regions.npy, pyramid.npy when present): the same content gives the same version, a rebuilt or
-replaced site a new one.
+graph.json (and field.npy, regions.npy, pyramid.npy when present): the same content gives the same version, a
+rebuilt or replaced site a new one.
 `Site.load` checks every hash and raises BundleIntegrityError naming the file that does not match (a file that
 another process's check found matching, that is not read whole and has not changed since, counts as checked:
 `FileChecks`).
@@ -36,8 +36,8 @@ import numpy as np
 
 from ..config import GraphConfig
 from ..errors import BundleIntegrityError, ConfigError, InvalidFileError, InvalidFrame
-from ..io.bundle_files import (FileStamp, file_stamp, map_npy, npy_bytes, read_bytes, read_json, sha256_bytes, sha256_file,
-                                write_bundle_dir)
+from ..io.bundle_files import (FileStamp, file_stamp, map_npy, npy_bytes, read_bytes, read_json, sha256_bytes,
+                                sha256_file, write_bundle_dir)
 from ..io.ply import release_pages
 from ..labels import labels_to_class_index
 from ..pointset import MappedRows, PointSet

@@ -358,4 +358,5 @@ def store_search_structures(site: Site) -> None:
         lc = LocalizeConfig()
         site.region_grids = region_grids(site, site.regions, cloud=lc.refine.map_points, halo_m=lc.regions.halo_m)
         if site.up is not None:  # (a building states its up: `compose`, `partition.py`)
-            site.pyramid = building_pyramid(DistanceField.from_grid(site.field_grid), site.up, lc.label_free).to_stored()
+            field = DistanceField.from_grid(site.field_grid)
+            site.pyramid = building_pyramid(field, site.up, lc.label_free).to_stored()
