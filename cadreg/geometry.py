@@ -6,7 +6,14 @@ All transforms are 4×4 float64 `T_<to>_<from>`; rotations 3×3 float64; quatern
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+
+def _rotation():
+    """SciPy's Rotation, imported on first use: this module is imported by every process, a server's parent among
+    them, which never turns a quaternion, and scipy.spatial costs it 0.4 s of its start."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation
 
 
 def make_T(R: np.ndarray | None = None, t: np.ndarray | None = None) -> np.ndarray:
@@ -53,11 +60,11 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 def quat_wxyz_to_R(q: np.ndarray) -> np.ndarray:
     """(w, x, y, z) quaternion (any norm) -> 3×3 rotation."""
     w, x, y, z = np.asarray(q, dtype=float)
-    return Rotation.from_quat([x, y, z, w]).as_matrix()
+    return _rotation().from_quat([x, y, z, w]).as_matrix()
 
 
 def R_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    x, y, z, w = _rotation().from_matrix(R).as_quat()
     return np.array([w, x, y, z])
 
 
@@ -113,6 +120,6 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         axis = np.cross(a, [1.0, 0.0, 0.0])
         if np.linalg.norm(axis) < 1e-6:
             axis = np.cross(a, [0.0, 1.0, 0.0])
-        return Rotation.from_rotvec(np.pi * axis / np.linalg.norm(axis)).as_matrix()
+        return _rotation().from_rotvec(np.pi * axis / np.linalg.norm(axis)).as_matrix()
     vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
     return np.eye(3) + vx + vx @ vx * (1.0 / (1.0 + c))

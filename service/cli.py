@@ -39,10 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    # Imported here so that `cadreg --help` stays fast.
-    import uvicorn
-
-    from .http_app import create_app, uvicorn_options
+    # Imported here so that `cadreg --help` stays fast; the web framework after the workers have started (below).
     from .runtime import Service
     from .settings import settings_from
 
@@ -59,6 +56,11 @@ def run(args: argparse.Namespace) -> int:
     # Start here rather than in the app's lifespan: a bad sites directory or a tampered bundle then ends the
     # command with one clear error line (ConfigError / BundleIntegrityError) instead of a server traceback.
     service.start()
+    # The workers load their sites meanwhile: the parent's imports from here on overlap their start.
+    import uvicorn
+
+    from .http_app import create_app, uvicorn_options
+
     zenoh_server = None
     try:
         if settings.zenoh_enabled:

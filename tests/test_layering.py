@@ -60,12 +60,14 @@ def test_core_has_no_print_or_environment() -> None:
     assert not bad, "\n".join(bad)
 
 
-def test_building_the_cli_parser_imports_no_localizer() -> None:
+def test_building_the_cli_parser_and_a_servers_parent_import_no_localizer() -> None:
     """Every command builds the whole parser, `cadreg serve` too, whose workers (not its parent) localize: the
-    parser's choices come from light modules, not from the localizer, its compiled loops or the registration
-    libraries (they cost a server's start about half a second)."""
-    heavy = ("numba", "open3d", "small_gicp", "cadreg.localize.localizer", "cadreg.bench")
-    code = ("import sys; from cadreg.cli.main import build_parser; build_parser(); "
-            f"print(','.join(m for m in {heavy!r} if m in sys.modules))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO)
-    assert out.stdout.strip() == ""
+    parser's choices come from light modules, and the parent's modules import neither the localizer, its compiled
+    loops, the registration libraries nor SciPy's spatial module (`geometry` imports it on first use). They cost a
+    server's parent about a second before it starts its workers."""
+    heavy = ("numba", "open3d", "small_gicp", "scipy.spatial", "cadreg.localize.localizer", "cadreg.bench")
+    for setup in ("from cadreg.cli.main import build_parser; build_parser()",
+                  "import service.runtime, service.http_app, service.settings"):
+        code = f"import sys; {setup}; print(','.join(m for m in {heavy!r} if m in sys.modules))"
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO)
+        assert out.stdout.strip() == "", setup
