@@ -239,20 +239,18 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         mapped when it was built with this localizer's up and settings."""
         if self._pyramid is None:
             lf = self.config.label_free
-            surfaces = self.site.cloud("both") if len(self.maps) == 1 else None
-            if surfaces is not None:
+            if len(self.maps) == 1:
+                surfaces = self.site.cloud("both")
                 pyr = GridPyramid(self.field, surfaces.points, self.up, **pyramid_settings(lf))
+                walls = map_direction_histogram(surfaces.normals.astype(np.float64) @ pyr.R_level_map.T)
+                region_walls = None
             else:
                 stored = self.site.pyramid
                 wanted = built_with(self.up, **pyramid_settings(lf))
                 pyr = None if stored is None else GridPyramid.from_stored(stored, wanted)
                 if pyr is None:
                     pyr = building_pyramid(self.field, self.up, lf)
-            if surfaces is None:
                 walls, region_walls = self._building_wall_directions(pyr.R_level_map)
-            else:
-                walls = map_direction_histogram(surfaces.normals.astype(np.float64) @ pyr.R_level_map.T)
-                region_walls = None
             self._pyramid = (pyr, walls, region_walls)
         return self._pyramid
 

@@ -50,6 +50,8 @@ OPTIONAL_FILES = ("field.npy", "regions.npy", "pyramid.npy")
 # A stored region grid's rows: position (map frame, metres), colour, class index (-1: none).
 REGION_GRID_DTYPE = np.dtype([("xyz", "<f4", (3,)), ("rgb", "u1", (3,)), ("cls", "<i2")])
 CLOUDS = ("raw", "enhanced", "both")
+
+
 @dataclass(frozen=True)
 class FileCheck:
     """A bundle file a hash check found matching: its sha256 as site.json lists it, and its stamp when it was
