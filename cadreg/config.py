@@ -401,6 +401,15 @@ class RegionConfig(_Section):
                                   "is ambiguous, however the frame's noise ranks the two")
     min_view_agreement: float = Field(0.6, ge=0, le=1, description="below this view agreement the graph's best "
                                       "is weak in a building and the fallbacks join")
+    # A label-free search cut at its node cap may pass the frame's pose by, and the pose it found instead fits the
+    # frame's points as well as the truth would (a self-similar corner, a turned room): how well that pose shows the
+    # frame along its rays is then what tells. Over eleven building sets without labels (6-30 rooms, 1640 renders;
+    # every search cut), the `ok` answers showing the frame 0.6-0.7 were wrong 6 times in 33, those showing it 0.7
+    # or more 3 times in 546 (below 0.6 the deeper search ran already). Searched deeper, three of the six are right
+    # and two `uncertain` (`docs/buildings-history.md`, thirty-eighth session).
+    deeper_view_agreement: float = Field(0.7, ge=0, le=1, description="in a building, below this view agreement "
+                                         "the answer of a label-free search cut at its node cap has the building "
+                                         "searched again, deeper")
     min_one_object_view_agreement: float = Field(0.8, ge=0, le=1, description="the same for a best pose that rests "
                                                  "on one matched object (or none): one object, a whiteboard seen in "
                                                  "part, pins a pose less than several do")

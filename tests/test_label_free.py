@@ -256,7 +256,7 @@ def test_a_building_search_is_cut_when_kept_to_the_candidates_rooms_or_thin_at_i
                                                                                       twin_shared_view) -> None:
     """`Scan.deeper_below`, what lets a weak answer have the building searched deeper: set when the label-free
     search covered only the graph's candidate rooms (to RegionConfig.min_one_object_view_agreement), or stopped at
-    its node cap with fewer than half a one-room search's nodes a room (to min_view_agreement); not when it gave the
+    its node cap with fewer than half a one-room search's nodes a room (to deeper_view_agreement); not when it gave the
     building's two rooms a room's nodes each, nor for the deeper search."""
     from cadreg.localize.localizer import Localizer
     from cadreg.localize.stages import StageTimer
@@ -277,6 +277,6 @@ def test_a_building_search_is_cut_when_kept_to_the_candidates_rooms_or_thin_at_i
     assert cut_after(thorough, thorough.maps.regions[:1]) == (rc.min_one_object_view_agreement, False)
     thin = Localizer.from_site(site, LocalizeConfig().model_copy(update={"regions": rc.model_copy(
         update={"search_max_nodes": 100, "search_nodes_per_region": 0})}))
-    assert cut_after(thin, []) == (rc.min_view_agreement, True)  # (`Scan.search_cut`: the whole building, cut)
+    assert cut_after(thin, []) == (rc.deeper_view_agreement, True)  # (`Scan.search_cut`: the whole building, cut)
     assert cut_after(thin, thin.maps.regions[:1]) == (rc.min_one_object_view_agreement, False)
     assert cut_after(thin, [], deeper=True) == (0.0, False)

@@ -452,19 +452,27 @@ def test_a_weak_answer_of_a_cut_search_leaves_its_copies_to_the_deeper_search(tw
     (`Scan.search_cut`), an answer that shows the frame along its rays less than `Scan.deeper_below`, with no copy
     of its view that does better, leaves its copies unrefined: the deeper search follows
     (`Localizer._weak_after_a_cut_search`), even for an answer off the map, and its refine stage looks at the
-    copies of its own winner. A copy that shows the frame as well as the bar asks, or a search that was not cut,
-    has the copies refined as before."""
+    copies of its own winner. A copy that shows the frame as well as RegionConfig.min_view_agreement asks, or a
+    search that was not cut, has the copies refined as before; so does an answer between that bar and the deeper
+    look's (`deeper_view_agreement`), whose deeper look then follows the copies' refinement."""
     from cadreg.localize.refine import RefineOutcome
     from cadreg.localize.stages import Choice
 
     loc, scan, T_a, to_b = _shared_view_scan(twin_rooms_dir, twin_shared_view)
-    bar = loc.config.regions.min_view_agreement
-    scan.deeper_below = bar
+    rc = loc.config.regions
+    bar = rc.min_view_agreement
+    assert rc.deeper_view_agreement > bar + 0.05
+    scan.deeper_below = rc.deeper_view_agreement  # what a cut search sets (`FallbackStage._label_free`)
     winner, copy = _refined_entry(T_a, bar - 0.05), _refined_entry(to_b @ T_a, bar - 0.03)
     assert not loc._copies_wait(scan, [winner], [copy])  # no cut search: no deeper one follows
     scan.search_cut = True
     assert loc._copies_wait(scan, [winner], [copy])
     assert not loc._copies_wait(scan, [winner], [_refined_entry(to_b @ T_a, bar + 0.01)])  # it may lift the answer
+    between = _refined_entry(T_a, bar + 0.03)
+    assert not loc._copies_wait(scan, [between], [_refined_entry(to_b @ T_a, bar + 0.02)])
+    on_the_map = Choice(between.candidate, RefineOutcome(T_a, None, 1, True, "grid_gicp"), 0.0, False,
+                        loc.config.refine.min_fitness, 0.02, scan.center_camera, 100, view_agreement=between.score)
+    assert loc._weak_after_a_cut_search(scan, on_the_map)  # the deeper look follows, its copies refined first
     off_the_map = Choice(winner.candidate, RefineOutcome(T_a, None, 1, True, "grid_gicp"), 0.0, False,
                          0.5 * loc.config.refine.min_fitness, 0.02, scan.center_camera, 100,
                          view_agreement=winner.score)

@@ -123,7 +123,7 @@ class FallbackStage:
         bound over (x, y, z, yaw) — over the client's search region, else over `rooms` (a building's candidate
         regions), else over the whole site; the distinct best leaves as hypotheses. None without an up direction.
         In a building a search stopped at its node cap with fewer than THIN_SEARCH_SHARE of a room's nodes a room
-        sets `Scan.deeper_below` to RegionConfig.min_view_agreement, and one kept to the candidates' rooms to
+        sets `Scan.deeper_below` to RegionConfig.deeper_view_agreement, and one kept to the candidates' rooms to
         min_one_object_view_agreement: the graph's best fell short of its bar, so the rooms it names are a guess,
         and an answer found only there has no more to say for its room than one object would. `deeper` searches
         with DEEPER_SEARCH_NODES times the nodes (`Localizer._deeper_look`); `own_yaws` tries each region's own yaws
@@ -174,7 +174,7 @@ class FallbackStage:
         if len(self.maps) > 1 and not deeper:
             kept_to_rooms = bool(rooms) and scan.search is None
             scan.search_cut = stats.capped and thin and not kept_to_rooms
-            scan.deeper_below = max(rc.min_view_agreement if stats.capped and thin else 0.0,
+            scan.deeper_below = max(rc.deeper_view_agreement if stats.capped and thin else 0.0,
                                     self._one_object_view_bar() if kept_to_rooms else 0.0)
         mc = self.config.match
         # In a building the same view may fit in many rooms: more distinct leaves are kept (a room's own leaves

@@ -290,17 +290,21 @@ class RefineStage:
             self._closest_fit_first(scan, refined, rivals, refine, candidates, diag)
         return has_rival, margin, rivals
 
-    @staticmethod
-    def _copies_wait(scan: Scan, refined: list[Refined], twins: list[Refined]) -> bool:
+    def _copies_wait(self, scan: Scan, refined: list[Refined], twins: list[Refined]) -> bool:
         """In a building: whether the copies of the view are left unrefined (`_promote_twins`) for the deeper search
         that follows (`Localizer._deeper_look`, which runs whenever they are): the label-free search was cut short
         over the whole building (`Scan.search_cut`), and neither the best refined pose nor any copy shows the frame
-        along its rays as well as `Scan.deeper_below` asks. The refine stage after the deeper search refines the
-        copies of its own winner. In a 135-room building with corridors, views repeated in 70-80 rooms refined three
-        copies of a first answer that showed them 0.55, at 120 ms each (a room map built, the refinement redone on
-        the whole frame and on its noise-weighed points), before the deeper search found poses that showed them
-        0.91-0.97: 1.3-1.5 s a frame."""
-        return scan.search_cut and max(r.score for r in refined + twins) < scan.deeper_below
+        along its rays as well as RegionConfig.min_view_agreement asks, nor as `Scan.deeper_below` does. The refine
+        stage after the deeper search refines the copies of its own winner. In a 135-room building with corridors,
+        views repeated in 70-80 rooms refined three copies of a first answer that showed them 0.55, at 120 ms each (a
+        room map built, the refinement redone on the whole frame and on its noise-weighed points), before the deeper
+        search found poses that showed them 0.91-0.97: 1.3-1.5 s a frame.
+        An answer between min_view_agreement and the deeper look's bar (RegionConfig.deeper_view_agreement) is more
+        often right than not (27 of 33 `ok` answers in eleven building sets), and its copies are refined first: left
+        waiting, they were never refined when the deeper search found no new pose (a 9-room view was answered 8 m
+        off, showing the frame 0.55, with the copy beside the truth that showed it 0.68 listed behind it)."""
+        bar = min(scan.deeper_below, self.config.regions.min_view_agreement)
+        return scan.search_cut and max(r.score for r in refined + twins) < bar
 
     def _rank_room(self, refined: list[Refined], candidates: list[Candidate], diag: Diagnostics) -> tuple[bool, float]:
         """In one room: the refined contenders ranked by score; (has a distinct rival, margin), with a rival standing

@@ -64,12 +64,12 @@ class Scan:
     reserve : in a one-room site, the label-free search's next distinct leaves after those it gave as hypotheses
     (LabelFreeConfig.reserve), unpolished: the second look's (`Localizer._second_look`); None when it did not run.
     deeper_below : in a building, the view agreement under which the label-free search's answer has the building
-    searched again (`Localizer._deeper_look`): RegionConfig.min_view_agreement when the search stopped at its node
+    searched again (`Localizer._deeper_look`): RegionConfig.deeper_view_agreement when the search stopped at its node
     cap with few nodes a room (`fallback_stage.THIN_SEARCH_SHARE`), min_one_object_view_agreement when it covered
     only the graph's candidate rooms (`FallbackStage._label_free`); 0 when the search did not run, was as thorough
     as a room's, or was spent.
     search_cut : in a building, the label-free search covered the whole building (or the client's search region)
-    and stopped at its node cap with few nodes a room: what set `deeper_below` to min_view_agreement.
+    and stopped at its node cap with few nodes a room: what set `deeper_below` to deeper_view_agreement.
     copies_wait : the refine stage left the copies of its answer unrefined for the deeper search that follows
     (`RefineStage._copies_wait`).
     """
