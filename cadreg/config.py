@@ -400,7 +400,8 @@ class RegionConfig(_Section):
                                   "same as at the answer along this share of the frame's rays is a twin: the answer "
                                   "is ambiguous, however the frame's noise ranks the two")
     min_view_agreement: float = Field(0.6, ge=0, le=1, description="below this view agreement the graph's best "
-                                      "is weak in a building and the fallbacks join")
+                                      "is weak in a building and the fallbacks join, and the answer of a label-free "
+                                      "search cut at its node cap leaves its copies to the deeper search")
     # A label-free search cut at its node cap may pass the frame's pose by, and the pose it found instead fits the
     # frame's points as well as the truth would (a self-similar corner, a turned room): how well that pose shows the
     # frame along its rays is then what tells. Over eleven building sets without labels (6-30 rooms, 1640 renders;
