@@ -399,6 +399,8 @@ class RegionConfig(_Section):
     twin_agreement: float = Field(0.92, ge=0, le=1, description="a distinct candidate at which the map shows the "
                                   "same as at the answer along this share of the frame's rays is a twin: the answer "
                                   "is ambiguous, however the frame's noise ranks the two")
+    # Raising it (the thirtieth session tried 0.75) also leaves a cut search's copies waiting more often
+    # (`RefineStage._copies_wait`): the deeper look's own bar is deeper_view_agreement.
     min_view_agreement: float = Field(0.6, ge=0, le=1, description="below this view agreement the graph's best "
                                       "is weak in a building and the fallbacks join, and the answer of a label-free "
                                       "search cut at its node cap leaves its copies to the deeper search")
@@ -406,8 +408,8 @@ class RegionConfig(_Section):
     # frame's points as well as the truth would (a self-similar corner, a turned room): how well that pose shows the
     # frame along its rays is then what tells. Over eleven building sets without labels (6-30 rooms, 1640 renders;
     # every search cut), the `ok` answers showing the frame 0.6-0.7 were wrong 6 times in 33, those showing it 0.7
-    # or more 3 times in 546 (below 0.6 the deeper search ran already). Searched deeper, three of the six are right
-    # and two `uncertain` (`docs/buildings-history.md`, thirty-eighth session).
+    # or more 3 times in 546 (below min_view_agreement, 0.6, the deeper search ran already). Searched deeper, three
+    # of the six are right and two `uncertain` (`docs/buildings-history.md`, thirty-eighth session).
     deeper_view_agreement: float = Field(0.7, ge=0, le=1, description="in a building, below this view agreement "
                                          "the answer of a label-free search cut at its node cap has the building "
                                          "searched again, deeper")

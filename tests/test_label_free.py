@@ -246,6 +246,12 @@ def test_a_weak_answer_after_a_thin_search_has_the_building_searched_deeper(kitc
     assert placed.status == Status.OK, placed.diagnostics.notes
     assert pose_errors(placed.T_map_camera, T_alone)[0] < 0.03
     assert any("after a cut search" in n for n in placed.diagnostics.notes)
+    # The deeper look's bar is RegionConfig.deeper_view_agreement, not the graph's weak-answer bar: with that one
+    # under the answer's 0.44 (its copies then refined first, `RefineStage._copies_wait`), the deeper look still runs.
+    low = thin.model_copy(update={"regions": thin.regions.model_copy(update={"min_view_agreement": 0.3})})
+    placed = Localizer.from_site(building.site, low).localize(frame)
+    assert any("after a cut search" in n for n in placed.diagnostics.notes)
+    assert pose_errors(placed.T_map_camera, T_alone)[0] < 0.03
     monkeypatch.setattr(fallback_stage, "THIN_SEARCH_SHARE", 0.0)  # every search as thorough as a room's
     placed = loc.localize(frame)
     assert not any("after a cut search" in n for n in placed.diagnostics.notes)

@@ -453,8 +453,9 @@ def test_a_weak_answer_of_a_cut_search_leaves_its_copies_to_the_deeper_search(tw
     of its view that does better, leaves its copies unrefined: the deeper search follows
     (`Localizer._weak_after_a_cut_search`), even for an answer off the map, and its refine stage looks at the
     copies of its own winner. A copy that shows the frame as well as RegionConfig.min_view_agreement asks, or a
-    search that was not cut, has the copies refined as before; so does an answer between that bar and the deeper
-    look's (`deeper_view_agreement`), whose deeper look then follows the copies' refinement."""
+    search that was not cut, has the copies refined as before; so does an answer, or a copy of its view, between
+    that bar and the deeper look's (`deeper_view_agreement`), whose deeper look then follows the copies'
+    refinement."""
     from cadreg.localize.refine import RefineOutcome
     from cadreg.localize.stages import Choice
 

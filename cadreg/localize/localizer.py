@@ -814,8 +814,9 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
     def _weak_after_a_cut_search(self, scan: Scan, choice: Choice) -> bool:
         """In a building: the label-free search searched the graph's candidate rooms only, or stopped at its node cap
         with few nodes a room, and the answer, which lies on the map (RefineConfig.min_fitness), shows the frame
-        along its rays less than `Scan.deeper_below`: the search may have passed the frame's pose by. On the
-        100-room benchmark the right answers showed the frame 0.62 or more; the three unique views without labels
+        along its rays less than `Scan.deeper_below` (RegionConfig.deeper_view_agreement after a cut search, whose
+        comment gives the figures behind it): the search may have passed the frame's pose by. On the 100-room
+        benchmark the right answers showed the frame 0.62 or more; the three unique views without labels
         that the search missed, 0.40-0.58 at the poses it found, and the one with labels that the graph's rooms did
         not hold, 0.49. In a 30-room building with moved furniture a labelled view of two chairs over a low wall,
         whose graph's best (two chairs matched) showed it 0.34, was answered `ok` at 0.62 in one of the graph's

@@ -294,15 +294,15 @@ class RefineStage:
         """In a building: whether the copies of the view are left unrefined (`_promote_twins`) for the deeper search
         that follows (`Localizer._deeper_look`, which runs whenever they are): the label-free search was cut short
         over the whole building (`Scan.search_cut`), and neither the best refined pose nor any copy shows the frame
-        along its rays as well as RegionConfig.min_view_agreement asks, nor as `Scan.deeper_below` does. The refine
+        along its rays as well as the lower of RegionConfig.min_view_agreement and `Scan.deeper_below` asks. The refine
         stage after the deeper search refines the copies of its own winner. In a 135-room building with corridors,
         views repeated in 70-80 rooms refined three copies of a first answer that showed them 0.55, at 120 ms each (a
         room map built, the refinement redone on the whole frame and on its noise-weighed points), before the deeper
         search found poses that showed them 0.91-0.97: 1.3-1.5 s a frame.
-        An answer between min_view_agreement and the deeper look's bar (RegionConfig.deeper_view_agreement) is more
-        often right than not (27 of 33 `ok` answers in eleven building sets), and its copies are refined first: left
-        waiting, they were never refined when the deeper search found no new pose (a 9-room view was answered 8 m
-        off, showing the frame 0.55, with the copy beside the truth that showed it 0.68 listed behind it)."""
+        An answer, or a copy of its view, between min_view_agreement and the deeper look's bar
+        (RegionConfig.deeper_view_agreement) is mostly right (that bar's comment), and the copies are refined first:
+        left waiting, they were never refined when the deeper search found no new pose (a 9-room view was answered
+        8 m off, showing the frame 0.55, with a copy beside the truth that showed it 0.68 listed behind it)."""
         bar = min(scan.deeper_below, self.config.regions.min_view_agreement)
         return scan.search_cut and max(r.score for r in refined + twins) < bar
 
