@@ -235,9 +235,11 @@ class MatchConfig(_Section):
                                       "min_chroma_correlation) takes the search's next leaves that "
                                       "min_chroma_correlation does not rule out (`Localizer._second_look`); it is "
                                       "claimed unless min_chroma_correlation rules it out")
-    chroma_min_std: float = Field(3.0, ge=0, description="the correlation is taken only where the frame's chroma and "
-                                  "the map's both spread at least this much (CIE Lab units, both axes together): a "
-                                  "grey room's chroma is sensor noise, and a map without colour says nothing")
+    chroma_min_std: float = Field(3.0, ge=0, description="the correlation is taken only where the map's chroma spreads "
+                                  "at least this much (CIE Lab units, both axes together), and the frame's too or the "
+                                  "frame's anywhere (a frame in colour that is grey where the map is not correlates "
+                                  "near 0): a grey room's chroma is sensor noise, and a map or a camera without "
+                                  "colour says nothing")
     refine_points: int = Field(1500, ge=100, description="frame points (after the refinement's voxel grid) one fine "
                                "refinement uses at most: its cost is bounded by points × iterations × contenders")
     distinct_translation_m: float = Field(0.3, gt=0)

@@ -9,6 +9,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from cadreg.camera import CameraIntrinsics
+from cadreg.config import MatchConfig
 from cadreg.geometry import make_T, pose_errors, transform_points
 from cadreg.localize.color_gicp import ColorGicpTarget, color_gicp, plane_covariances, prepare_cloud, rgb_to_lab
 from cadreg.localize.grid_gicp import PLANE_EPS, MapNormals, _linearize, gicp, plane_covariance, plane_normals, se3_exp
@@ -298,6 +299,32 @@ def test_chroma_correlation_follows_the_chroma_through_exposure_and_white_balanc
     grey = np.repeat(map_rgb.mean(axis=1, keepdims=True), 3, axis=1)
     assert chroma_correlation(frame_rgb, grey, 3.0) is None
     assert chroma_correlation(grey, map_rgb, 3.0) is None
+
+
+def test_a_frame_in_colour_that_is_grey_where_the_map_is_coloured_does_not_follow_it() -> None:
+    """A colour camera's view of a grey place (its chroma the sensor's noise) placed where the map has an orange door
+    and blue chairs: the frame's colours do not follow the map's there. A picture without colour says nothing; nor
+    does a grey map; and a faintly coloured view of the right place still correlates."""
+    from cadreg.localize.refine import chroma_correlation, chroma_spread
+
+    rng = np.random.default_rng(0)
+    albedo = np.array([[0.85, 0.85, 0.82], [0.75, 0.45, 0.15], [0.25, 0.35, 0.70]])
+    surface = rng.integers(0, 3, 600)
+    map_rgb = albedo[surface] * rng.uniform(0.35, 1.0, 600)[:, None]
+    brightness = map_rgb.mean(axis=1, keepdims=True)
+    noisy_grey = np.clip(brightness + rng.normal(0, 0.004, (600, 3)), 0, 1)
+    assert 0.5 < chroma_spread(noisy_grey) < 3.0 < chroma_spread(map_rgb)
+    assert chroma_correlation(noisy_grey, map_rgb, 3.0) is None  # unless the frame has colour
+    correlation = chroma_correlation(noisy_grey, map_rgb, 3.0, frame_in_colour=True)
+    assert correlation is not None and abs(correlation) < MatchConfig().min_chroma_correlation  # the gate's bar
+    grey = np.repeat(brightness, 3, axis=1)
+    assert chroma_spread(grey) < 1e-3
+    assert chroma_correlation(map_rgb, grey, 3.0, frame_in_colour=True) is None
+    # The right place, seen by a camera that renders its colours at a fourteenth of their saturation: the frame's
+    # spread falls under the bar, and it follows the map's all the same.
+    faint = np.clip(brightness + 0.07 * (map_rgb - brightness), 0, 1)
+    assert chroma_spread(faint) < 3.0
+    assert chroma_correlation(faint, map_rgb, 3.0, frame_in_colour=True) > 0.5
 
 
 def test_chroma_correlation_matches_the_white_balance_before_it_compares() -> None:

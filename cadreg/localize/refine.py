@@ -49,26 +49,40 @@ WIDE_PASS = 2.5
 REACH_MARGIN_M = 0.25
 
 
-def chroma_correlation(frame_rgb: np.ndarray, map_rgb: np.ndarray, min_std: float) -> float | None:
+def chroma_spread(rgb: np.ndarray) -> float:
+    """How widely colours ((n, 3) sRGB in [0, 1]) spread in chroma: the root of the variances of their CIE a* and b*
+    summed (0 for a grey picture, ~1-2 for a grey one's sensor noise, 10-20 for a room's furnishings)."""
+    ab = linear_to_lab(srgb_to_linear(rgb))[:, 1:]
+    return float(np.sqrt(np.sum(np.var(ab, axis=0)))) if len(ab) else 0.0
+
+
+def chroma_correlation(frame_rgb: np.ndarray, map_rgb: np.ndarray, min_std: float, *,
+                       frame_in_colour: bool = False) -> float | None:
     """The correlation of a frame's chroma with the map's at the same points ((n, 3) sRGB in [0, 1] each): the
     frame's white balance matched to the map's first (a gain per channel, in linear light, least squares), then of
-    the CIE (a*, b*) vectors about their means, Σ (f − f̄)·(m − m̄) / √(Σ |f − f̄|² · Σ |m − m̄|²); None when either
-    side's chroma spreads less than `min_std` (the root of the two axes' variances).
+    the CIE (a*, b*) vectors about their means, Σ (f − f̄)·(m − m̄) / √(Σ |f − f̄|² · Σ |m − m̄|²); None when the
+    map's chroma spreads less than `min_std` (the root of the two axes' variances) there, or the frame's does and
+    the frame has no colour elsewhere either (`frame_in_colour` False: a camera without colour, a grey view).
     A correlation, not a colour distance: exposure and the camera's tone curve scale and bend the chroma axes, and
     the map's colours were fused from other frames (or another sensor). A white balance off by a gain per channel
     tints each surface by as much as it is bright, and the shading of a grey room then reads as chroma the map does
     not have: matched first (renders of scene0470 with each channel's gain off by up to 25 %, tone curve, blur,
     noise and colour 6 px off the depth: right poses below 0.25, 16 % -> 3 %). One correlation of both axes, not one
-    an axis: an axis along which one side barely varies weighs as little as it varies."""
+    an axis: an axis along which one side barely varies weighs as little as it varies.
+    A frame in colour that is grey where the map is coloured has its spread taken as `min_std` (the correlation is
+    then that of the map's chroma with the frame's noise, near 0): the colours do not follow the map's. Frames of
+    other rooms placed in a one-room map by their shape alone were answered `ok` there (confidence 0.71-0.90, a
+    render of Replica office0 in the 7-Scenes kitchen 3.3 m off): at their poses the frame's chroma spread 0.6-2.8,
+    the map's 5-15; at right poses the two spread alike (both 1.4-2.9 on Replica office0's grey walls)."""
     f_lin, m_lin = srgb_to_linear(frame_rgb), srgb_to_linear(map_rgb)
     gain = np.sum(f_lin * m_lin, axis=0) / np.maximum(np.sum(m_lin * m_lin, axis=0), 1e-12)
     f = linear_to_lab(f_lin / np.maximum(gain, 1e-6))[:, 1:]
     m = linear_to_lab(m_lin)[:, 1:]
     f, m = f - f.mean(axis=0), m - m.mean(axis=0)
-    f_var, m_var = float(np.sum(f * f)), float(np.sum(m * m))
-    if min(f_var, m_var) < len(f) * min_std ** 2:
+    f_var, m_var, least = float(np.sum(f * f)), float(np.sum(m * m)), len(f) * min_std ** 2
+    if m_var < least or (f_var < least and not frame_in_colour):
         return None
-    return float(np.sum(f * m) / np.sqrt(f_var * m_var))
+    return float(np.sum(f * m) / np.sqrt(max(f_var, least) * m_var))
 
 
 def crop_to_roi(points: FramePoints, radius_m: float,
@@ -290,8 +304,8 @@ class RefineMap:
         col = float(np.exp(-(dE / color_scale) ** 2).mean())
         return float(ok.mean()), sem, col
 
-    def chroma_correlation(self, xyz_map: np.ndarray, rgb: np.ndarray, *, inlier_m: float,
-                           min_std: float) -> float | None:
+    def chroma_correlation(self, xyz_map: np.ndarray, rgb: np.ndarray, *, inlier_m: float, min_std: float,
+                           frame_in_colour: bool = False) -> float | None:
         """The correlation of the chroma of the frame's inliers with their map points' (`chroma_correlation`); None
         when either spreads less than `min_std`, or fewer than MIN_COLOR_PAIRS points are inliers.
         xyz_map (n, 3) frame points placed in the map; rgb (n, 3) their colours, sRGB in [0, 1] (`Scan.fit_rgb`)."""
@@ -301,7 +315,7 @@ class RefineMap:
             return None
         nn = nn[ok]
         return chroma_correlation(rgb[ok], self.rgb_at(nn if isinstance(self._fit_keep, slice) else self._fit_keep[nn]),
-                                  min_std)
+                                  min_std, frame_in_colour=frame_in_colour)
 
     def coarse_align(self, source: small_gicp.PointCloud, init_T_map_camera: np.ndarray, *,
                      max_correspondence_m: float = 0.3, max_iterations: int = 20) -> np.ndarray:

@@ -52,6 +52,9 @@ class Scan:
         carries no labels (nothing to agree or disagree with the map's classes).
     fit_rgb : (len(fit_xyz), 3) colours of fit_xyz, each the mean of the colour pixels about its own
         (`points.window_colours`): what the colour gate compares with the map's (`Localizer._chroma_at`).
+    in_colour : fit_rgb's chroma spreads at least `localizer.COLOURLESS_SPREAD` (`refine.chroma_spread`): the
+        camera gives colour, so a pose at which the frame is grey where the map is coloured is one at which its
+        colours do not follow the map's (`refine.chroma_correlation`).
     check_xyz : (≤ check_points, 3) float64 sample of `points` for the final fitness.
     zbuf : coarse z-buffer of `points` (`score.ViewCheck.zbuffer`) for the free-space check; K : the depth
         intrinsics it was projected with. None for scans built without a frame.
@@ -85,6 +88,7 @@ class Scan:
     fit_cls: np.ndarray | None
     fit_rgb: np.ndarray
     check_xyz: np.ndarray
+    in_colour: bool = False
     zbuf: np.ndarray | None = None
     K: object | None = None
     center_camera: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.5]))  # centroid of `points`
