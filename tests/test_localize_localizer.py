@@ -451,6 +451,47 @@ def test_an_answer_whose_colours_follow_the_map_weakly_takes_the_second_look(sce
     assert r.status == Status.OK and pose_errors(r.T_map_camera, T_true)[0] > 1.0
 
 
+def test_two_chairs_before_a_wall_are_found_in_their_own_place_by_the_second_look(scene0470_site_dir, scene0470_dir,
+                                                                                  tmp_path) -> None:
+    """A robot's camera 0.49 m up at two of scene0470's chairs before the white wall (frame 43 of `cadreg render
+    --height 0.3 0.8 --pitch -5 20 --n 150 --seed 23`). Without labels the search's first answer puts them before
+    another wall, 1.4 m off and turned 85 degrees, with a margin over rivals the frame sees through (`ok`,
+    confidence 0.93); its colours correlate 0.61-0.63 with the map's there, the true pose's 0.95. Rendered with
+    seed 1, the second look (below MatchConfig.second_look_chroma, 0.7) finds the truth among the search's further
+    leaves; below the former 0.5 it was not taken. Rendered with seed 0, the further leaf 5 cm from the truth is
+    the place of a candidate 22 cm off that was never refined (the frame sees through it there,
+    `refine_stage.HOPELESS_SEE_THROUGH`), and is refined as a place of its own (`Localizer._new_places`)."""
+    T_chairs = np.array([[-0.071317816324, 0.260173927616, -0.962924346179, 1.045287652193],
+                         [0.996106342957, -0.031582253852, -0.08230865545, 1.484719455104],
+                         [-0.051825887307, -0.965045122588, -0.256908522191, 0.488631882296],
+                         [0.0, 0.0, 0.0, 1.0]])
+    site, frame, T_true = _found_by_the_second_look(scene0470_dir, scene0470_site_dir, tmp_path / "s1", T_chairs,
+                                                    seed=1)
+    r = Localizer.from_site(site, LocalizeConfig(match=MatchConfig(second_look_chroma=0.5))).localize(frame)
+    assert r.status == Status.OK and pose_errors(r.T_map_camera, T_true)[0] > 1.0
+    _found_by_the_second_look(scene0470_dir, scene0470_site_dir, tmp_path / "s0", T_chairs, seed=0)
+
+
+def test_the_second_look_brings_places_the_candidates_do_not(localizer) -> None:
+    """`Localizer._new_places`: a further leaf distinct from every candidate is new; one at a candidate's place is
+    new only when it scores higher there (a closer start) and is not the answer's own place."""
+    from cadreg.localize.stages import Candidate
+    from cadreg.result import Hypothesis
+
+    def candidate(T_map_camera, score):
+        return Candidate(T_map_camera, score, Hypothesis(T_map_camera, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64))
+
+    answer, passed = make_T(t=np.array([0.0, 0.0, 0.0])), make_T(t=np.array([2.0, 0.0, 0.0]))
+    candidates = [candidate(answer, 0.85), candidate(passed, 0.84)]
+    elsewhere = candidate(make_T(t=np.array([0.0, 3.0, 0.0])), 0.5)
+    closer = candidate(make_T(t=np.array([2.05, 0.0, 0.0])), 0.9)
+    farther = candidate(make_T(t=np.array([2.05, 0.0, 0.0])), 0.8)
+    at_the_answer = candidate(make_T(t=np.array([0.05, 0.0, 0.0])), 0.95)
+    new = localizer._new_places([elsewhere, closer, farther, at_the_answer], candidates, answer)
+    assert [c is x for c, x in zip(new, [elsewhere, closer])] == [True, True] and len(new) == 2
+    assert localizer._new_places([], candidates, answer) == []
+
+
 def test_the_margin_is_to_the_best_distinct_refined_rival(localizer) -> None:
     """Refined contenders best first: a runner-up that converged onto the winner is no rival and must not hide a
     distinct one behind it (twin rooms at 0.962 and 0.947 with a copy of the first between them were answered
