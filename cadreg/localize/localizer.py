@@ -78,8 +78,8 @@ COARSE_POINTS = 600
 # one pixel's colour is noise enough to hide a grey room's chroma (`points.window_colours`).
 COLOUR_WINDOW = 2
 # A frame whose colours spread in chroma less than this (`refine.chroma_spread`) carries none: a client without a
-# colour camera sends a grey or black picture (0). A colour camera's view of a grey room spreads more (Replica
-# office0's renders 1.8-7, scene0470's 4.5-8, the real RedKitchen frames 11-18, the 3DMatch frames 8-11).
+# colour camera sends a grey or black picture (0). A colour camera's view of a grey room spreads more: Replica
+# office0's renders 1.8 or more (median 7), scene0470's 4.5 (median 8), the 3DMatch frames 8, RedKitchen's 11.
 COLOURLESS_SPREAD = 0.5
 # A hypothesis whose coarse GICP would hand over more than this share of its points far from the map gets a cloud
 # of the others (`_coarse_align`): rebuilding one costs 0.5 ms, so hypotheses with a few far points keep the shared one.

@@ -51,7 +51,7 @@ REACH_MARGIN_M = 0.25
 
 def chroma_spread(rgb: np.ndarray) -> float:
     """How widely colours ((n, 3) sRGB in [0, 1]) spread in chroma: the root of the variances of their CIE a* and b*
-    summed (0 for a grey picture, ~1-2 for a grey one's sensor noise, 10-20 for a room's furnishings)."""
+    summed (0 for a grey picture; a colour camera's view of a grey room 2-7, of a furnished one 10-20)."""
     ab = linear_to_lab(srgb_to_linear(rgb))[:, 1:]
     return float(np.sqrt(np.sum(np.var(ab, axis=0)))) if len(ab) else 0.0
 
@@ -306,8 +306,8 @@ class RefineMap:
 
     def chroma_correlation(self, xyz_map: np.ndarray, rgb: np.ndarray, *, inlier_m: float, min_std: float,
                            frame_in_colour: bool = False) -> float | None:
-        """The correlation of the chroma of the frame's inliers with their map points' (`chroma_correlation`); None
-        when either spreads less than `min_std`, or fewer than MIN_COLOR_PAIRS points are inliers.
+        """The correlation of the chroma of the frame's inliers with their map points' (`chroma_correlation`, with
+        `min_std` and `frame_in_colour`); None when that is, or fewer than MIN_COLOR_PAIRS points are inliers.
         xyz_map (n, 3) frame points placed in the map; rgb (n, 3) their colours, sRGB in [0, 1] (`Scan.fit_rgb`)."""
         d, nn = self.fit_tree.query(xyz_map, k=1, distance_upper_bound=inlier_m)
         ok = np.isfinite(d)
