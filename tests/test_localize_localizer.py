@@ -325,16 +325,13 @@ def _chroma_reversed(frame: Frame) -> Frame:
     return replace(frame, color=np.clip(np.rint(2 * grey - rgb), 0, 255).astype(np.uint8))
 
 
-def test_a_pose_whose_colours_are_not_the_maps_is_not_ok(scene0470_site_dir, scene0470_dir, tmp_path) -> None:
-    """Frame 6 of `cadreg render --seed 7` without its labels (the door, the whiteboard, the floor): answered `ok`
-    and right. The same depth with each colour's chroma reversed is the same shape in other colours, as a view of
-    another place of that shape would be: along a* and b* the frame's colours now run against the map's (the
-    correlation turns negative), and the pose, however well it fits, is not claimed."""
+def _door_view(scene0470_dir, tmp_path) -> tuple[Frame, np.ndarray]:
+    """Frame 6 of `cadreg render --seed 7` (the orange door, the whiteboard, the floor), without its labels, and its
+    true pose."""
     from conftest import scene0470_mesh
 
     from cadreg.io.frames import RecordedFrames
     from cadreg.render.sequence import render_frames
-    from cadreg.site.bundle import Site
 
     T_view = np.array([[0.151856002985, -0.444472487241, 0.882827255154, 0.705756650069],
                        [-0.985587089875, -0.000724100586, 0.169167266192, 1.699125599499],
@@ -342,16 +339,31 @@ def test_a_pose_whose_colours_are_not_the_maps_is_not_ok(scene0470_site_dir, sce
                        [0.0, 0.0, 0.0, 1.0]])
     render_frames(scene0470_mesh(scene0470_dir), tmp_path / "frames", 1, seed=7, poses=[T_view])
     frame, T_true = RecordedFrames.open(tmp_path / "frames").load(0)
-    frame = replace(frame, labels=None)
+    return replace(frame, labels=None), T_true
+
+
+def _not_claimed_for_its_colours(r, T_true: np.ndarray) -> None:
+    """The right pose, `uncertain` because the frame's colours are not the map's there."""
+    assert r.status == Status.UNCERTAIN and r.T_map_camera is None, r.diagnostics.notes
+    assert pose_errors(r.hypotheses[0].T_map_camera, T_true)[0] < 0.05  # the same pose, not claimed
+    assert any(n.startswith("uncertain") and "colours are not the map's" in n for n in r.diagnostics.notes)
+
+
+def test_a_pose_whose_colours_are_not_the_maps_is_not_ok(scene0470_site_dir, scene0470_dir, tmp_path) -> None:
+    """Frame 6 of `cadreg render --seed 7` without its labels (the door, the whiteboard, the floor): answered `ok`
+    and right. The same depth with each colour's chroma reversed is the same shape in other colours, as a view of
+    another place of that shape would be: along a* and b* the frame's colours now run against the map's (the
+    correlation turns negative), and the pose, however well it fits, is not claimed."""
+    from cadreg.site.bundle import Site
+
+    frame, T_true = _door_view(scene0470_dir, tmp_path)
     loc = Localizer.from_site(Site.load(scene0470_site_dir))
     r = loc.localize(frame)
     assert r.status == Status.OK and pose_errors(r.T_map_camera, T_true)[0] < 0.05
     correlation = [n for n in r.diagnostics.notes if n.startswith("colour: ")]
     assert correlation and float(correlation[0].split("correlates ")[1].split()[0]) > 0.5
     r = loc.localize(_chroma_reversed(frame))
-    assert r.status == Status.UNCERTAIN and r.T_map_camera is None, r.diagnostics.notes
-    assert pose_errors(r.hypotheses[0].T_map_camera, T_true)[0] < 0.05  # the same pose, not claimed
-    assert any(n.startswith("uncertain") and "colours are not the map's" in n for n in r.diagnostics.notes)
+    _not_claimed_for_its_colours(r, T_true)
 
 
 def test_a_colour_cameras_grey_view_where_the_map_is_coloured_is_not_ok(scene0470_site_dir, scene0470_dir,
@@ -361,20 +373,11 @@ def test_a_colour_cameras_grey_view_where_the_map_is_coloured_is_not_ok(scene047
     and where the map has the orange door the colours do not follow the map's (a render of Replica office0 was
     answered `ok` so in the 7-Scenes kitchen, 3.3 m off, confidence 0.90). Without any colour at all (a client
     without a colour camera) the picture says nothing, and the pose is claimed on its shape as before."""
-    from conftest import scene0470_mesh
-
-    from cadreg.io.frames import RecordedFrames
-    from cadreg.render.sequence import render_frames
     from cadreg.site.bundle import Site
 
-    T_view = np.array([[0.151856002985, -0.444472487241, 0.882827255154, 0.705756650069],
-                       [-0.985587089875, -0.000724100586, 0.169167266192, 1.699125599499],
-                       [-0.074550939831, -0.895792210149, -0.43817630425, 1.697019826155],
-                       [0.0, 0.0, 0.0, 1.0]])
-    render_frames(scene0470_mesh(scene0470_dir), tmp_path / "frames", 1, seed=7, poses=[T_view])
-    frame, T_true = RecordedFrames.open(tmp_path / "frames").load(0)
+    frame, T_true = _door_view(scene0470_dir, tmp_path)
     grey = np.repeat(frame.color.astype(np.float64).mean(axis=2, keepdims=True), 3, axis=2)
-    colourless = replace(frame, labels=None, color=np.rint(grey).astype(np.uint8))
+    colourless = replace(frame, color=np.rint(grey).astype(np.uint8))
     # The sensor's chroma noise: patches of a few pixels, each channel off by about a level.
     rng = np.random.default_rng(0)
     h, w = grey.shape[:2]
@@ -385,9 +388,7 @@ def test_a_colour_cameras_grey_view_where_the_map_is_coloured_is_not_ok(scene047
     assert r.status == Status.OK and pose_errors(r.T_map_camera, T_true)[0] < 0.05, r.diagnostics.notes
     assert not any(n.startswith("colour: ") for n in r.diagnostics.notes)  # nothing to compare
     r = loc.localize(noisy)
-    assert r.status == Status.UNCERTAIN and r.T_map_camera is None, r.diagnostics.notes
-    assert pose_errors(r.hypotheses[0].T_map_camera, T_true)[0] < 0.05  # the same pose, not claimed
-    assert any(n.startswith("uncertain") and "colours are not the map's" in n for n in r.diagnostics.notes)
+    _not_claimed_for_its_colours(r, T_true)
 
 
 def _found_by_the_second_look(scene0470_dir, scene0470_site_dir, tmp_path, T_map_camera: np.ndarray, *, seed: int):
