@@ -475,22 +475,25 @@ def test_two_chairs_before_a_wall_are_found_in_their_own_place_by_the_second_loo
 
 def test_the_second_look_brings_places_the_candidates_do_not(localizer) -> None:
     """`Localizer._new_places`: a further leaf distinct from every candidate is new; one at a candidate's place is
-    new only when it scores higher there (a closer start) and is not the answer's own place."""
+    new only when it scores higher there (a closer start), and replaces that candidate; one at the answer's refined
+    pose is not, wherever the answer started."""
     from cadreg.localize.stages import Candidate
     from cadreg.result import Hypothesis
 
     def candidate(T_map_camera, score):
         return Candidate(T_map_camera, score, Hypothesis(T_map_camera, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64))
 
-    answer, passed = make_T(t=np.array([0.0, 0.0, 0.0])), make_T(t=np.array([2.0, 0.0, 0.0]))
-    candidates = [candidate(answer, 0.85), candidate(passed, 0.84)]
+    start, refined = make_T(t=np.array([0.0, 0.0, 0.0])), make_T(t=np.array([0.0, -1.0, 0.0]))
+    answer, passed = candidate(start, 0.85), candidate(make_T(t=np.array([2.0, 0.0, 0.0])), 0.84)
     elsewhere = candidate(make_T(t=np.array([0.0, 3.0, 0.0])), 0.5)
     closer = candidate(make_T(t=np.array([2.05, 0.0, 0.0])), 0.9)
     farther = candidate(make_T(t=np.array([2.05, 0.0, 0.0])), 0.8)
-    at_the_answer = candidate(make_T(t=np.array([0.05, 0.0, 0.0])), 0.95)
-    new = localizer._new_places([elsewhere, closer, farther, at_the_answer], candidates, answer)
-    assert [c is x for c, x in zip(new, [elsewhere, closer])] == [True, True] and len(new) == 2
-    assert localizer._new_places([], candidates, answer) == []
+    at_the_answer = candidate(make_T(t=np.array([0.0, -1.05, 0.0])), 0.5)  # distinct from every candidate
+    new, kept = localizer._new_places([elsewhere, closer, farther, at_the_answer], [answer, passed], refined)
+    assert len(new) == 2 and new[0] is elsewhere and new[1] is closer
+    assert len(kept) == 1 and kept[0] is answer  # `passed` is replaced by `closer`
+    new, kept = localizer._new_places([at_the_answer], [answer, passed], refined)
+    assert new == [] and len(kept) == 2
 
 
 def test_the_margin_is_to_the_best_distinct_refined_rival(localizer) -> None:

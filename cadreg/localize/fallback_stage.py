@@ -271,8 +271,9 @@ class FallbackStage:
         """The label-free search's reserve leaves (`Scan.reserve`) at which the frame's colours follow the map's
         (`Localizer._chroma_at` not `_chroma_rules_out`: measured at a leaf, up to half a cell and a yaw step off, a
         right pose's chroma is lower than refined, and at the doubt's bar the true corner of a view at a robot's
-        height was left out; a leaf where the map's colours are too flat to tell is left out: the frame's are not,
-        or its answer would not have been doubted by them), polished as the first leaves were; None when none is.
+        height was left out; a leaf where the map's colours are too flat to tell is left out: a frame in colour was
+        doubted for colours the map's did not follow, and one grey where the map is coloured has its true place, if
+        grey, left out too, and its answer then stays doubted), polished as the first leaves were; None when none is.
         The reserve is spent."""
         reserve, scan.reserve = scan.reserve, None
         if reserve is None or not len(reserve):

@@ -807,28 +807,35 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         if leaves is None:
             return candidates, choice
         source = self._coarse_source(scan)
-        more = self._new_places(self._align(leaves, source, scan, origin="fallback:bbs"), candidates,
-                                choice.outcome.T_map_camera)
+        more, kept = self._new_places(self._align(leaves, source, scan, origin="fallback:bbs"), candidates,
+                                      choice.outcome.T_map_camera)
         if not more:
             return candidates, choice
         diag.notes.append(f"the answer's colours follow the map's weakly there (chroma {choice.chroma:.2f}): {len(more)} "
                           "more leaves of the label-free search, where they follow them, refined too")
-        candidates = sorted(candidates + more, key=lambda c: -c.score)
+        candidates = sorted(kept + more, key=lambda c: -c.score)
         return candidates, self._refine(scan, candidates, method, diag)
 
-    def _new_places(self, leaves: list[Candidate], candidates: list[Candidate], T_answer: np.ndarray) -> list[Candidate]:
-        """The aligned leaves of the second look that bring a place the candidates do not: distinct from every
-        candidate, or closer to one than it is (a higher score) where that candidate was not the answer. A rival
-        whose coarse pose the frame sees through is never refined (`refine_stage.HOPELESS_SEE_THROUGH`): at a
-        robot's height, a view of two chairs before a wall had its true place among the candidates 22 cm off, seen
-        through and passed by, and the leaf 5 cm off that the second look found was dropped as the same place; the
-        answer went 1.4 m and 85° off (`ok`, confidence 0.93)."""
-        if not candidates:
-            return leaves
-        poses, scores = np.array([k.T_map_camera for k in candidates]), np.array([k.score for k in candidates])
-        same = ~self._distinct_pairs(np.array([c.T_map_camera for c in leaves]).reshape(-1, 4, 4), poses)
-        return [c for c, s in zip(leaves, same)
-                if not s.any() or (c.score > scores[s].max() and self._distinct(c.T_map_camera, T_answer))]
+    def _new_places(self, leaves: list[Candidate], candidates: list[Candidate],
+                    T_answer: np.ndarray) -> tuple[list[Candidate], list[Candidate]]:
+        """(the aligned leaves of the second look that bring a place the candidates do not, the candidates they do not
+        replace). A leaf at the answer's refined pose brings nothing; one distinct from every candidate is new; one
+        not distinct from some is new when it scores higher than each of them (a closer start), which it replaces, so
+        that the two do not take two of the refine stage's contenders. A rival whose coarse pose the frame sees
+        through is never refined (`refine_stage.HOPELESS_SEE_THROUGH`): at a robot's height, a view of two chairs
+        before a wall had its true place among the candidates 22 cm off, seen through and passed by, and the leaf 5 cm
+        off that the second look found was dropped as the same place; the answer went 1.4 m and 85° off (`ok`,
+        confidence 0.93)."""
+        leaves = [c for c in leaves if self._distinct(c.T_map_camera, T_answer)]
+        if not leaves or not candidates:
+            return leaves, candidates
+        scores = np.array([k.score for k in candidates])
+        same = ~self._distinct_pairs(np.array([c.T_map_camera for c in leaves]),
+                                     np.array([k.T_map_camera for k in candidates]))
+        new = np.array([not s.any() or c.score > scores[s].max() for c, s in zip(leaves, same)])
+        replaced = same[new].any(axis=0)
+        return ([c for c, n in zip(leaves, new) if n],
+                [k for k, r in zip(candidates, replaced) if not r])
 
     def _weak_after_a_cut_search(self, scan: Scan, choice: Choice) -> bool:
         """In a building: the label-free search searched the graph's candidate rooms only, or stopped at its node cap
