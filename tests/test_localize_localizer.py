@@ -510,6 +510,49 @@ def test_the_margin_is_to_the_best_distinct_refined_rival(localizer) -> None:
     assert has_rival and margin == pytest.approx(0.05)
 
 
+def test_a_second_run_of_the_refine_stage_refines_no_contender_again(scene, localizer, monkeypatch) -> None:
+    """The second and the deeper look run the refine stage again over candidates that hold the first run's
+    contenders: their refinements are the frame's own (`Scan.fine`), the same GICP passes from the same start, and are
+    not redone; a new contender is refined, and the answer is what one run over them all gives."""
+    import cadreg.localize.refine_stage as refine_stage
+    from cadreg.localize.stages import Candidate, StageTimer
+    from cadreg.result import Diagnostics, Hypothesis
+
+    frame, T = _views(scene, 1, seed=5)[0]
+    diag = Diagnostics(site_id="s", bundle_version="v")
+    scan = localizer._scan(frame, diag, StageTimer(diag.stage_ms))
+
+    def candidate(T_map_camera, score):
+        return Candidate(T_map_camera, score, Hypothesis(T_map_camera, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64))
+
+    starts = []
+    real_refine_one = Localizer._refine_one
+
+    def counting(self, refine_map, points, T_start, method):
+        starts.append(T_start)
+        return real_refine_one(self, refine_map, points, T_start, method)
+
+    monkeypatch.setattr(Localizer, "_refine_one", counting)
+    near = T @ make_T(t=np.array([0.03, -0.02, 0.02]))
+    first = [candidate(near, 0.9)]
+    choice = localizer._refine(scan, first, "small_gicp", diag)
+    assert starts and pose_errors(choice.outcome.T_map_camera, T)[0] < 0.02
+    refined_once = len(starts)
+    again = localizer._refine(scan, first, "small_gicp", diag)
+    assert len(starts) == refined_once  # nothing refined again
+    assert np.array_equal(again.outcome.T_map_camera, choice.outcome.T_map_camera)
+    # A contender the first run did not have (a distinct rival, refined whatever the frame sees through at its
+    # start) is refined; one run over both from a fresh scan answers the same.
+    monkeypatch.setattr(refine_stage, "HOPELESS_SEE_THROUGH", 1e9)
+    more = first + [candidate(T @ make_T(t=np.array([0.6, 0.0, 0.0])), 0.89)]
+    both = localizer._refine(scan, more, "small_gicp", diag)
+    assert len(starts) > refined_once
+    fresh = localizer._scan(frame, diag, StageTimer(diag.stage_ms))
+    once = localizer._refine(fresh, more, "small_gicp", diag)
+    assert np.array_equal(both.outcome.T_map_camera, once.outcome.T_map_camera)
+    assert both.margin == once.margin and both.fitness == once.fitness
+
+
 def test_a_rival_the_frame_sees_through_at_its_coarse_pose_is_not_refined(scene, localizer, monkeypatch) -> None:
     """A contender other than the best at which the frame sees through the map far beyond max_see_through keeps its
     coarse pose and a score of 0 without a refinement (each costs a GICP, and such a one never became credible);

@@ -131,18 +131,7 @@ class RefineStage:
                 # A rival the frame sees through this far at its coarse pose never refined into a credible
                 # one: it keeps that pose and a score of 0, as its refinement would have earned.
                 return Refined(0.0, RefineOutcome(c.T_map_camera, None, 0, False, run.method), c, see)
-        out = self._refine_one(maps.refine_map, run.roi_points, c.T_map_camera, run.method)
-        if run.roi_weighed is not None:
-            # GICP pairs each point with its nearest map point, and where two surfaces lie a few centimetres apart
-            # along a noisy point's ray (a room's wall and the corridor wall behind it, 12-18 cm apart, seen 5 m away
-            # at σ 5 cm) the noisy points pair across and pull the pose, 7-8 cm off from the true pose itself: the
-            # weighed points fit the frame better there. Where the far points hold what the near ones cannot (a far
-            # wall the only one in view), the points alike do (the demo room's view 4.4 m deep: 2.6 cm alike, 6.4
-            # weighed).
-            out = self._fits_better(run, maps.refine_map, out, self._refine_one(maps.refine_map, run.roi_weighed,
-                                                                                c.T_map_camera, run.method))
-        if run.roi_frame_points < len(run.source):
-            out = self._unslid(run, maps.refine_map, c, out)
+        out = self._fine_pose(run, maps.refine_map, c)
         see = 0.0 if scan.zbuf is None else self.maps_at(out.T_map_camera, run.center_camera).view_check.see_through(
             out.T_map_camera, scan.zbuf, scan.K)
         if scan.view is not None:
@@ -156,6 +145,28 @@ class RefineStage:
             # are what put them side by side (`_near_contender`).
             score *= maps.view_check.depth_agreement(out.T_map_camera, scan.zbuf, scan.K)
         return Refined(score, out, c, see)
+
+    def _fine_pose(self, run: RefineRun, refine_map: RefineMap, c: Candidate) -> RefineOutcome:
+        """A contender's fine refinement, or the one this frame's refine stage made of it before (`Scan.fine`: the
+        region of interest, the points and the map it is refined on are the frame's and the contender's own, so a
+        second run of the stage, after the second or the deeper look, would redo the same GICP passes)."""
+        known = run.scan.fine.get(id(c))
+        if known is not None and known[0] is c:
+            return known[1]
+        out = self._refine_one(refine_map, run.roi_points, c.T_map_camera, run.method)
+        if run.roi_weighed is not None:
+            # GICP pairs each point with its nearest map point, and where two surfaces lie a few centimetres apart
+            # along a noisy point's ray (a room's wall and the corridor wall behind it, 12-18 cm apart, seen 5 m away
+            # at σ 5 cm) the noisy points pair across and pull the pose, 7-8 cm off from the true pose itself: the
+            # weighed points fit the frame better there. Where the far points hold what the near ones cannot (a far
+            # wall the only one in view), the points alike do (the demo room's view 4.4 m deep: 2.6 cm alike, 6.4
+            # weighed).
+            out = self._fits_better(run, refine_map, out, self._refine_one(refine_map, run.roi_weighed,
+                                                                           c.T_map_camera, run.method))
+        if run.roi_frame_points < len(run.source):
+            out = self._unslid(run, refine_map, c, out)
+        run.scan.fine[id(c)] = (c, out)
+        return out
 
     def _unslid(self, run: RefineRun, refine_map: RefineMap, c: Candidate, out: RefineOutcome) -> RefineOutcome:
         """The ROI leaves out the frame's far points; when those were what held the pose along some direction (a

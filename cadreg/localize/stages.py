@@ -75,6 +75,9 @@ class Scan:
     and stopped at its node cap with few nodes a room: what set `deeper_below` to deeper_view_agreement.
     copies_wait : the refine stage left the copies of its answer unrefined for the deeper search that follows
     (`RefineStage._copies_wait`).
+    fine : the fine refinements of this frame's contenders so far, by the contender's identity (the contender kept
+    beside its outcome): the second and the deeper look run the refine stage again over candidates that hold the
+    first run's contenders, whose refinements would come out the same (`RefineStage._fine_pose`).
     """
 
     points: FramePoints
@@ -99,6 +102,7 @@ class Scan:
     deeper_below: float = 0.0
     search_cut: bool = False
     copies_wait: bool = False
+    fine: dict[int, tuple[Candidate, RefineOutcome]] = field(default_factory=dict)
 
     @cached_property
     def view_shares(self) -> np.ndarray:
