@@ -473,22 +473,37 @@ def test_two_chairs_before_a_wall_are_found_in_their_own_place_by_the_second_loo
     _found_by_the_second_look(scene0470_dir, scene0470_site_dir, tmp_path / "s0", T_chairs, seed=0)
 
 
+def _candidate(T_map_camera: np.ndarray, score: float):
+    """A candidate of the refine stage at a pose, as the verify stage hands it over (no graph assignment)."""
+    from cadreg.localize.stages import Candidate
+    from cadreg.result import Hypothesis
+
+    return Candidate(T_map_camera, score, Hypothesis(T_map_camera, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64))
+
+
+def _refinement_starts(monkeypatch) -> list[np.ndarray]:
+    """The start of every fine refinement (`Localizer._refine_one`) from here on, in order."""
+    starts = []
+    real_refine_one = Localizer._refine_one
+
+    def counting(self, refine_map, points, T_start, method):
+        starts.append(T_start)
+        return real_refine_one(self, refine_map, points, T_start, method)
+
+    monkeypatch.setattr(Localizer, "_refine_one", counting)
+    return starts
+
+
 def test_the_second_look_brings_places_the_candidates_do_not(localizer) -> None:
     """`Localizer._new_places`: a further leaf distinct from every candidate is new; one at a candidate's place is
     new only when it scores higher there (a closer start), and replaces that candidate; one at the answer's refined
     pose is not, wherever the answer started."""
-    from cadreg.localize.stages import Candidate
-    from cadreg.result import Hypothesis
-
-    def candidate(T_map_camera, score):
-        return Candidate(T_map_camera, score, Hypothesis(T_map_camera, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64))
-
     start, refined = make_T(t=np.array([0.0, 0.0, 0.0])), make_T(t=np.array([0.0, -1.0, 0.0]))
-    answer, passed = candidate(start, 0.85), candidate(make_T(t=np.array([2.0, 0.0, 0.0])), 0.84)
-    elsewhere = candidate(make_T(t=np.array([0.0, 3.0, 0.0])), 0.5)
-    closer = candidate(make_T(t=np.array([2.05, 0.0, 0.0])), 0.9)
-    farther = candidate(make_T(t=np.array([2.05, 0.0, 0.0])), 0.8)
-    at_the_answer = candidate(make_T(t=np.array([0.0, -1.05, 0.0])), 0.5)  # distinct from every candidate
+    answer, passed = _candidate(start, 0.85), _candidate(make_T(t=np.array([2.0, 0.0, 0.0])), 0.84)
+    elsewhere = _candidate(make_T(t=np.array([0.0, 3.0, 0.0])), 0.5)
+    closer = _candidate(make_T(t=np.array([2.05, 0.0, 0.0])), 0.9)
+    farther = _candidate(make_T(t=np.array([2.05, 0.0, 0.0])), 0.8)
+    at_the_answer = _candidate(make_T(t=np.array([0.0, -1.05, 0.0])), 0.5)  # distinct from every candidate
     new, kept = localizer._new_places([elsewhere, closer, farther, at_the_answer], [answer, passed], refined)
     assert len(new) == 2 and new[0] is elsewhere and new[1] is closer
     assert len(kept) == 1 and kept[0] is answer  # `passed` is replaced by `closer`
@@ -515,26 +530,16 @@ def test_a_second_run_of_the_refine_stage_refines_no_contender_again(scene, loca
     contenders: their refinements are the frame's own (`Scan.fine`), the same GICP passes from the same start, and are
     not redone; a new contender is refined, and the answer is what one run over them all gives."""
     import cadreg.localize.refine_stage as refine_stage
-    from cadreg.localize.stages import Candidate, StageTimer
-    from cadreg.result import Diagnostics, Hypothesis
+    from cadreg.localize.stages import StageTimer
+    from cadreg.result import Diagnostics
 
     frame, T = _views(scene, 1, seed=5)[0]
     diag = Diagnostics(site_id="s", bundle_version="v")
     scan = localizer._scan(frame, diag, StageTimer(diag.stage_ms))
 
-    def candidate(T_map_camera, score):
-        return Candidate(T_map_camera, score, Hypothesis(T_map_camera, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64))
-
-    starts = []
-    real_refine_one = Localizer._refine_one
-
-    def counting(self, refine_map, points, T_start, method):
-        starts.append(T_start)
-        return real_refine_one(self, refine_map, points, T_start, method)
-
-    monkeypatch.setattr(Localizer, "_refine_one", counting)
+    starts = _refinement_starts(monkeypatch)
     near = T @ make_T(t=np.array([0.03, -0.02, 0.02]))
-    first = [candidate(near, 0.9)]
+    first = [_candidate(near, 0.9)]
     choice = localizer._refine(scan, first, "small_gicp", diag)
     assert starts and pose_errors(choice.outcome.T_map_camera, T)[0] < 0.02
     refined_once = len(starts)
@@ -544,7 +549,7 @@ def test_a_second_run_of_the_refine_stage_refines_no_contender_again(scene, loca
     # A contender the first run did not have (a distinct rival, refined whatever the frame sees through at its
     # start) is refined; one run over both from a fresh scan answers the same.
     monkeypatch.setattr(refine_stage, "HOPELESS_SEE_THROUGH", 1e9)
-    more = first + [candidate(T @ make_T(t=np.array([0.6, 0.0, 0.0])), 0.89)]
+    more = first + [_candidate(T @ make_T(t=np.array([0.6, 0.0, 0.0])), 0.89)]
     both = localizer._refine(scan, more, "small_gicp", diag)
     assert len(starts) > refined_once
     fresh = localizer._scan(frame, diag, StageTimer(diag.stage_ms))
@@ -558,8 +563,8 @@ def test_a_rival_the_frame_sees_through_at_its_coarse_pose_is_not_refined(scene,
     coarse pose and a score of 0 without a refinement (each costs a GICP, and such a one never became credible);
     it still counts as the distinct rival it is."""
     import cadreg.localize.refine_stage as refine_stage
-    from cadreg.localize.stages import Candidate, StageTimer
-    from cadreg.result import Diagnostics, Hypothesis
+    from cadreg.localize.stages import StageTimer
+    from cadreg.result import Diagnostics
 
     frame, T = _views(scene, 1, seed=5)[0]
     diag = Diagnostics(site_id="s", bundle_version="v")
@@ -567,18 +572,8 @@ def test_a_rival_the_frame_sees_through_at_its_coarse_pose_is_not_refined(scene,
     ahead = T @ make_T(t=np.array([0.0, 0.0, 0.7]))  # 70 cm forward: the map stands in front of what was measured
     assert localizer.view_check.see_through(ahead, scan.zbuf, scan.K) > 0.5
 
-    def candidate(T_map_camera, score):
-        return Candidate(T_map_camera, score, Hypothesis(T_map_camera, 0.0, 0.0, 0.0, score), np.zeros(0, np.int64))
-
-    starts = []
-    real_refine_one = Localizer._refine_one
-
-    def counting(self, refine_map, points, T_start, method):
-        starts.append(T_start)
-        return real_refine_one(self, refine_map, points, T_start, method)
-
-    monkeypatch.setattr(Localizer, "_refine_one", counting)
-    best, rival = candidate(T, 0.9), candidate(ahead, 0.89)
+    starts = _refinement_starts(monkeypatch)
+    best, rival = _candidate(T, 0.9), _candidate(ahead, 0.89)
     choice = localizer._refine(scan, [best, rival], "small_gicp", diag)
     assert all(np.allclose(s, T) for s in starts)  # only the best was refined (and maybe its slide check)
     assert choice.candidate is best and choice.has_rival and choice.margin > 0.5
