@@ -48,7 +48,7 @@ from .gravity import estimate_floor, map_floor_height, map_up_axis, planar_norma
 from .match import (Hypotheses, MapGraph, best_overall_and_by_group, distinct_best, distinct_pairs,
                     gravity_hypotheses, kabsch_hypotheses, score_graph)
 from .points import frame_to_points, voxel_budget, voxel_downsample, window_colours
-from .refine import GICP_NEIGHBORS, RefineMap, chroma_spread
+from .refine import GICP_NEIGHBORS, RefineMap
 from .refine_stage import RefineStage
 from .regions import RegionIndex, RegionMaps, region_cloud
 from .score import DistanceField, ViewCheck, score_poses
@@ -77,10 +77,6 @@ COARSE_POINTS = 600
 # The colour gate reads each of its points' colour as the mean of this many pixels each way about its own (5 × 5):
 # one pixel's colour is noise enough to hide a grey room's chroma (`points.window_colours`).
 COLOUR_WINDOW = 2
-# A frame whose colours spread in chroma less than this (`refine.chroma_spread`) carries none: a client without a
-# colour camera sends a grey or black picture (0). A colour camera's view of a grey room spreads more: Replica
-# office0's renders 1.8 or more (median 7), scene0470's 4.5 (median 8), the 3DMatch frames 8, RedKitchen's 11.
-COLOURLESS_SPREAD = 0.5
 # A hypothesis whose coarse GICP would hand over more than this share of its points far from the map gets a cloud
 # of the others (`_coarse_align`): rebuilding one costs 0.5 ms, so hypotheses with a few far points keep the shared one.
 COARSE_FAR_SHARE = 0.25
@@ -379,11 +375,10 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         score = rng.choice(len(down), min(fc.score_points, len(down)), replace=False)
         fit = rng.choice(len(down), min(fc.fit_points, len(down)), replace=False)
         check = rng.choice(len(points), min(fc.check_points, len(points)), replace=False)
-        fit_rgb = window_colours(frame, down.xyz[fit], COLOUR_WINDOW)
         return Scan(points, down, class_index, clusters, floor, score_xyz=down.xyz[score], fit_xyz=down.xyz[fit],
                     fit_lab=rgb_to_lab(down.rgb[fit]), fit_cls=class_index[fit] if labelled.any() else None,
-                    fit_rgb=fit_rgb, check_xyz=points.xyz[check],
-                    in_colour=chroma_spread(fit_rgb) >= COLOURLESS_SPREAD,
+                    fit_rgb=window_colours(frame, down.xyz[fit], COLOUR_WINDOW),
+                    check_xyz=points.xyz[check],
                     zbuf=ViewCheck.zbuffer(down.xyz, frame.depth_intrinsics), K=frame.depth_intrinsics,
                     center_camera=_centroid(points.xyz), search=frame.search_region,
                     view=FieldView(frame) if len(self.maps) > 1 else None)
