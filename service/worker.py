@@ -158,8 +158,12 @@ def worker_main(conn, sites: list[tuple[str, str, FileChecks | None]], localize_
     """Entry point of a worker process; `sites` = [(site_id, bundle_dir, checked)]; slot: its place in the pool."""
     import signal
 
-    # Ctrl-C in a terminal reaches the whole process group; the parent stops the workers in order.
+    # Ctrl-C in a terminal reaches the whole process group, and so does a service manager's SIGTERM to its control
+    # group (systemd's default) or `kill -- -PGID`: the parent stops the workers in order, after the requests in
+    # flight are answered. A worker killed by the signal itself failed its request with `worker_crashed` and was
+    # replaced by a new one the parent started during its own shutdown.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s[%(process)d]: %(message)s")
     if "numpy" in sys.modules and os.environ.get("OMP_NUM_THREADS") != "1":
         log.warning("numpy was imported before the worker set its thread limits")
