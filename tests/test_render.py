@@ -224,3 +224,72 @@ def test_cli_render(scene0470_dir: Path, scene_mesh: LabelledMesh, tmp_path: Pat
     assert all(np.allclose(again.pose(i), frames.pose(i)) for i in frames.indices)
     # No labels but objects required: a config error, exit code 2.
     assert main(["render", "--mesh", mesh_ply, "--out", str(tmp_path / "bad"), "--n", "1"]) == 2
+
+
+@pytest.mark.realdata
+def test_a_walk_is_one_camera_carried_through_the_room(scene_mesh: LabelledMesh, scene_renderer: MeshRenderer,
+                                                       tmp_path: Path) -> None:
+    from cadreg.render.poses import WALK_SPIN_DEG, PoseSampler
+
+    step, n = 0.05, 60
+    walked = render_frames(scene_mesh, tmp_path / "walk", n, seed=3, walk_step_m=step, noise=None)
+    # its first view is the one a sampled set draws first, with the same seed
+    first = render_frames(scene_mesh, tmp_path / "one", 1, seed=3, noise=None)[0]
+    np.testing.assert_array_equal(walked[0].T_map_camera, first.T_map_camera)
+    sampler, cfg = PoseSampler(scene_renderer), RenderConfig()
+    floor = scene_mesh.floor_height_m()
+    moves = spins = 0
+    for a, b in zip(walked, walked[1:]):
+        Ta, Tb = a.T_map_camera, b.T_map_camera
+        moved = float(np.linalg.norm(Tb[:3, 3] - Ta[:3, 3]))
+        ha, pitch_a, _ = pose_height_pitch_roll(Ta, floor)
+        hb, pitch_b, roll_b = pose_height_pitch_roll(Tb, floor)
+        heading = lambda T: np.degrees(np.arctan2(T[1, 2], T[0, 2]))  # noqa: E731 (the optical axis seen from above)
+        dyaw = abs((heading(Tb) - heading(Ta) + 180.0) % 360.0 - 180.0)
+        # a step of step_m the way it looks, or a turn on the spot, never a jump
+        if moved > 1e-9:
+            moves += 1
+            assert moved == pytest.approx(step, abs=1e-9) and dyaw <= 1e-6  # a straight way to the next place
+            direction = (Tb[:2, 3] - Ta[:2, 3]) / moved
+            assert np.degrees(np.arccos(np.clip(direction @ np.array([np.cos(np.radians(heading(Tb))),
+                                                                      np.sin(np.radians(heading(Tb)))]), -1, 1))) < 1e-3
+        else:
+            spins += 1
+            assert dyaw <= WALK_SPIN_DEG + 1e-6
+        assert hb == pytest.approx(ha, abs=1e-9)  # carried at one height
+        assert cfg.pitch_min_deg - 1e-6 <= pitch_b <= cfg.pitch_max_deg + 1e-6 and abs(roll_b) <= cfg.roll_max_deg + 1e-6
+        assert abs(pitch_b - pitch_a) < 3.0
+        assert sampler.position_ok(Tb[:3, 3], hb)
+    assert moves >= 10 and spins >= 5  # it walks from place to place, turning on the spot between
+    # the same seed, the same walk
+    again = render_frames(scene_mesh, tmp_path / "again", n, seed=3, walk_step_m=step, noise=None)
+    assert all(np.array_equal(x.T_map_camera, y.T_map_camera) for x, y in zip(walked, again))
+    with pytest.raises(ConfigError, match="walk"):
+        render_frames(scene_mesh, tmp_path / "x", 2, walk_step_m=0.0)
+
+
+@pytest.mark.realdata
+def test_a_rendered_walk_is_tracked(scene_mesh: LabelledMesh, scene0470_site_dir: Path, tmp_path: Path) -> None:
+    """The stream the tutorial sends (`cadreg render --walk`): after the first frame's search, the session tracks."""
+    from cadreg.geometry import pose_errors
+    from cadreg.localize.localizer import Localizer
+    from cadreg.site.bundle import Site
+
+    out = tmp_path / "walk"
+    assert main(["render", "--site", str(scene0470_site_dir), "--out", str(out), "--n", "30", "--seed", "1",
+                 "--walk", "0.05"]) == 0
+    frames = RecordedFrames.open(out)
+    localizer = Localizer.from_site(Site.load(scene0470_site_dir))
+    state, modes = None, []
+    for k, i in enumerate(frames.indices):
+        frame, T_true = frames.load(i)
+        tracked = localizer.track(frame, state, t_s=0.1 * k)  # 10 frames a second: 0.5 m/s
+        state, result = tracked.state, tracked.result
+        modes.append(result.diagnostics.mode)
+        assert result.status.value == "ok", (k, result.diagnostics.notes)
+        t_err, r_err = pose_errors(result.T_map_camera, T_true)
+        assert t_err < 0.05 and r_err < 5.0, (k, t_err, r_err)
+    assert modes[0] == "global" and modes.count("tracked") >= 20, modes
+    # --walk with given poses is refused
+    assert main(["render", "--site", str(scene0470_site_dir), "--out", str(tmp_path / "bad"), "--poses", str(out),
+                 "--walk", "0.05"]) == 2

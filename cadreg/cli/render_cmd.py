@@ -49,6 +49,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--pitch", type=float, nargs=2, metavar=("MIN_DEG", "MAX_DEG"), help="downward pitch range")
     p.add_argument("--min-visible-objects", type=int, help="keep views seeing at least this many objects")
     p.add_argument("--poses", type=Path, help="render these poses (file of stacked 4x4 or a folder) instead of sampling")
+    p.add_argument("--walk", type=float, metavar="STEP_M", help="frames of one camera carried through the room, STEP_M "
+                   "metres apart (0.05: a slow walk at 10 frames/s), from a first view sampled as usual: a stream "
+                   "to track")
     p.add_argument("--jpg", action="store_true", help="write colour as JPEG (as ScanNet) instead of PNG")
     p.set_defaults(func=run)
 
@@ -115,6 +118,8 @@ def run(args: argparse.Namespace) -> int:
     if config.height_min_m > config.height_max_m or config.pitch_min_deg > config.pitch_max_deg:
         raise ConfigError("--height and --pitch take MIN MAX with MIN <= MAX")
     if args.layout is not None:
+        if args.walk is not None:
+            raise ConfigError("--walk renders inside one room (--site or --mesh), not a --layout")
         return _render_layout(args, config)
     if args.site is None and args.mesh is None:
         raise ConfigError("give one of --site, --mesh or --layout")
@@ -122,6 +127,8 @@ def run(args: argparse.Namespace) -> int:
         mesh, mesh_desc = load_site_mesh(args.site)
     else:
         mesh, mesh_desc = LabelledMesh.from_ply(args.mesh, args.labels), str(args.mesh)
+    if args.walk is not None and args.poses is not None:
+        raise ConfigError("give --walk or --poses, not both")
     poses = read_poses(args.poses) if args.poses else None
     if poses is None and args.n <= 0:
         raise ConfigError("--n must be positive (or give --poses)")
@@ -135,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
 
         frames = render_frames(
             mesh, args.out, n, seed=args.seed, config=config,
-            noise=None if args.no_noise else NoiseConfig(), poses=poses, progress=progress,
+            noise=None if args.no_noise else NoiseConfig(), poses=poses, walk_step_m=args.walk, progress=progress,
         )
     vis = [f.visible_objects for f in frames]
     print(json.dumps({

@@ -3,9 +3,15 @@
 A candidate position is uniform over the mesh's footprint at a height above the floor; it is kept when it is clear
 of every surface, stands over floor (not over furniture), and is enclosed by the room (horizontal rays hit walls in
 most directions). The orientation is any heading, pitched down, with a little roll.
+
+A walk (`walk`) is the poses of one camera carried through the room, frame after frame: what a stream of a robot
+or a phone sends, for tracking (`cadreg render --walk STEP_M`).
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -40,6 +46,22 @@ def pose_height_pitch_roll(T_map_camera: np.ndarray, floor_z: float) -> tuple[fl
     return float(T_map_camera[2, 3] - floor_z), pitch, roll
 
 
+@dataclass(frozen=True)
+class Placement:
+    """Where a camera is and how it is held: position (3,) map frame (z up), height above the floor (m), heading,
+    downward pitch and roll (degrees, `look_pose`'s)."""
+
+    position: np.ndarray
+    height_m: float
+    yaw_deg: float
+    pitch_deg: float
+    roll_deg: float
+
+    def pose(self) -> np.ndarray:
+        """T_map_camera (4x4)."""
+        return look_pose(self.position, self.yaw_deg, self.pitch_deg, self.roll_deg)
+
+
 class PoseSampler:
     """Draws plausible hand-held camera poses inside the room of a mesh (z up)."""
 
@@ -70,6 +92,11 @@ class PoseSampler:
 
     def sample(self, rng: np.random.Generator, max_tries: int = 1000) -> np.ndarray | None:
         """One T_map_camera (colour camera -> map) or None when `max_tries` positions all fail."""
+        placement = self.draw(rng, max_tries)
+        return None if placement is None else placement.pose()
+
+    def draw(self, rng: np.random.Generator, max_tries: int = 1000) -> Placement | None:
+        """One camera placement (`sample`'s pose) or None when `max_tries` positions all fail."""
         cfg = self.config
         for _ in range(max_tries):
             xy = rng.uniform(self.xy_min, self.xy_max)
@@ -77,10 +104,77 @@ class PoseSampler:
             p = np.array([xy[0], xy[1], self.floor_z + h])
             if not self.position_ok(p, h):
                 continue
-            return look_pose(
-                p,
-                yaw_deg=rng.uniform(0.0, 360.0),
-                pitch_down_deg=rng.uniform(cfg.pitch_min_deg, cfg.pitch_max_deg),
-                roll_deg=rng.uniform(-cfg.roll_max_deg, cfg.roll_max_deg),
-            )
+            return Placement(p, float(h), float(rng.uniform(0.0, 360.0)),
+                             float(rng.uniform(cfg.pitch_min_deg, cfg.pitch_max_deg)),
+                             float(rng.uniform(-cfg.roll_max_deg, cfg.roll_max_deg)))
         return None
+
+
+# A walk goes from place to place: it turns on the spot towards the next place by at most this much a frame (5
+# degrees a frame is 50 a second at 10 frames a second, as a person turns), then walks there in a straight line.
+WALK_SPIN_DEG = 5.0
+# How far the hand's pitch and roll drift a frame (degrees, one standard deviation), within RenderConfig's ranges.
+WALK_TILT_DEG = 0.5
+# The next place is drawn as the sampler draws a camera position, and kept when every step of the straight way there
+# stands where the sampler allows (clear of surfaces, over floor, inside the room) and its view shows a surface on
+# at least this share of the depth camera's rays (`sees`): lower than a sampled view's (RenderConfig.
+# min_valid_fraction, 0.5), since a scan's walls stop low (scene0470's at 1.37 m) and a camera at 1.2-1.75 m
+# looking across the room sees over them. At most WALK_PLACE_TRIES draws a place, a place at least WALK_MIN_LEG_M
+# away; of the first WALK_CHOICES places so found, the one it turns least to face (a person walks on rather than
+# about).
+WALK_MIN_VALID = 0.1
+WALK_PLACE_TRIES = 200
+WALK_MIN_LEG_M = 0.5
+WALK_CHOICES = 4
+
+
+def walk(sampler: PoseSampler, start: Placement, rng: np.random.Generator, n: int, *, step_m: float,
+         sees: Callable[[np.ndarray], float] = lambda T: 1.0) -> list[Placement]:
+    """`n` placements of one camera carried through the room from `start` (included), as a person films a room:
+    it turns on the spot towards a next place (`WALK_SPIN_DEG` a frame) and walks there in a straight line,
+    `step_m` a frame, looking the way it goes; pitch and roll drift a little (`WALK_TILT_DEG`) within the sampler's
+    ranges. Every step stands where `PoseSampler.position_ok` allows and shows a surface on WALK_MIN_VALID of the
+    view's rays (`sees(T_map_camera)`: the share, the caller's check). Where no next place is found (a pocket of
+    furniture), it turns on the spot. Deterministic for a given rng state."""
+    cfg = sampler.config
+    out: list[Placement] = [start]
+    route: list[Placement] = []  # the placements still ahead on the way to the next place
+    while len(out) < n:
+        if not route:
+            route = _leg(sampler, out[-1], rng, step_m, sees)
+        last = out[-1]
+        pitch = float(np.clip(last.pitch_deg + rng.normal(0.0, WALK_TILT_DEG), cfg.pitch_min_deg, cfg.pitch_max_deg))
+        roll = float(np.clip(last.roll_deg + rng.normal(0.0, WALK_TILT_DEG), -cfg.roll_max_deg, cfg.roll_max_deg))
+        out.append(replace(route.pop(0), pitch_deg=pitch, roll_deg=roll))
+    return out
+
+
+def _leg(sampler: PoseSampler, at: Placement, rng: np.random.Generator, step_m: float,
+         sees: Callable[[np.ndarray], float]) -> list[Placement]:
+    """The placements from `at` to a next place (its pitch and roll as `at`'s): the turns on the spot towards it,
+    then the steps there. None found: a quarter turn on the spot."""
+    legs: list[tuple[list[Placement], list[Placement]]] = []  # (turns, steps)
+    for _ in range(WALK_PLACE_TRIES):
+        xy = rng.uniform(sampler.xy_min, sampler.xy_max)
+        way = np.array([xy[0], xy[1], at.position[2]]) - at.position
+        length = float(np.linalg.norm(way))
+        if length < WALK_MIN_LEG_M:
+            continue
+        yaw = float(np.degrees(np.arctan2(way[1], way[0])))
+        steps = [replace(at, position=at.position + way * (k * step_m / length), yaw_deg=yaw % 360.0)
+                 for k in range(1, int(length / step_m) + 1)]
+        if all(sampler.position_ok(p.position, p.height_m) and sees(p.pose()) >= WALK_MIN_VALID for p in steps):
+            legs.append((_turns(at, yaw), steps))
+            if len(legs) == WALK_CHOICES:
+                break
+    if not legs:
+        return _turns(at, at.yaw_deg + 90.0)
+    turns, steps = min(legs, key=lambda leg: len(leg[0]))
+    return turns + steps
+
+
+def _turns(at: Placement, yaw_deg: float) -> list[Placement]:
+    """`at` turned on the spot towards heading yaw_deg, WALK_SPIN_DEG a frame (the last turn lands on it)."""
+    delta = (yaw_deg - at.yaw_deg + 180.0) % 360.0 - 180.0
+    count = int(np.ceil(abs(delta) / WALK_SPIN_DEG - 1e-9))
+    return [replace(at, yaw_deg=(at.yaw_deg + delta * k / count) % 360.0) for k in range(1, count + 1)]

@@ -4,16 +4,18 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
+from ..camera import CameraIntrinsics
 from ..config import NoiseConfig, RenderConfig
 from ..errors import ConfigError, InvalidFrame
 from ..io.frames import FramesWriter
 from .mesh import LabelledMesh
 from .noise import depth_range_m
-from .poses import PoseSampler
+from .poses import Placement, PoseSampler, walk
 from .raycast import MeshRenderer, View, camera_rig
 
 
@@ -39,6 +41,14 @@ def count_visible_objects(view: View, min_fraction: float) -> int:
     return int(np.count_nonzero(counts >= min_fraction * view.instances.size))
 
 
+def _valid_share(renderer: MeshRenderer, coarse: CameraIntrinsics, T_color_depth: np.ndarray, min_z: float,
+                 max_z: float, T_map_camera: np.ndarray) -> float:
+    """The share of a coarse grid of the depth camera's rays (`coarse`: the camera at a low resolution) that meet a
+    surface within the sensor's range at T_map_camera (colour camera -> map): a walk's view check."""
+    z = renderer.cast(coarse, T_map_camera @ T_color_depth, with_color=False).depth_m
+    return float(np.mean(np.isfinite(z) & (z >= min_z) & (z <= max_z)))
+
+
 def render_frames(
     mesh: LabelledMesh,
     out_dir: str | Path,
@@ -48,13 +58,15 @@ def render_frames(
     config: RenderConfig = RenderConfig(),
     noise: NoiseConfig | None = NoiseConfig(),
     poses: Sequence[np.ndarray] | None = None,
+    walk_step_m: float | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> list[RenderedFrame]:
     """Render `n` frames into `out_dir` (ScanNet export layout, pose/<i>.txt = T_map_camera of the colour camera).
 
     With `poses` given, those poses are rendered as they are (n = len(poses) when n <= 0); otherwise poses are
     sampled by `PoseSampler` and a view is kept when its valid depth share and visible object count pass the
-    config. Deterministic for a given seed. noise None = noiseless.
+    config. With `walk_step_m`, only the first pose is sampled so; the others follow it, `walk_step_m` apart, as one
+    camera carried through the room (`poses.walk`). Deterministic for a given seed. noise None = noiseless.
     """
     depth_intr, color_intr, T_color_depth = camera_rig(config)
     if poses is None and config.min_visible_objects > 0 and mesh.labels is None:
@@ -63,6 +75,8 @@ def render_frames(
         n = len(poses)
     if n <= 0:
         raise ConfigError(f"number of frames must be positive, got {n}")
+    if walk_step_m is not None and (poses is not None or not walk_step_m > 0):
+        raise ConfigError(f"a walk takes a positive step and no given poses, got step {walk_step_m} m")
     rng = np.random.default_rng(seed)
     renderer = MeshRenderer(mesh)
     sampler = PoseSampler(renderer, config) if poses is None else None
@@ -73,21 +87,26 @@ def render_frames(
     min_z = noise.min_depth_m if noise is not None else 0.0
     max_z = noise.max_depth_m if noise is not None else np.inf
     out: list[RenderedFrame] = []
+    walked: list[Placement] | None = None  # a walk's placements, once its first view is drawn
     failures = 0
     while len(out) < n:
         i = len(out)
+        given = poses is not None or walked is not None  # rendered as they are, no view checks
         if poses is not None:
             T = np.asarray(poses[i], dtype=np.float64)
+        elif walked is not None:
+            T = walked[i].pose()
         else:
-            T = sampler.sample(rng)  # type: ignore[union-attr]
-            if T is None:
+            placement = sampler.draw(rng)  # type: ignore[union-attr]
+            if placement is None:
                 raise ConfigError("no camera position inside the room passes the height/clearance checks")
+            T = placement.pose()
         # Judge a sampled view on the depth camera's cast (labels included) before paying for the colour camera.
         dview = renderer.cast(depth_intr, T @ T_color_depth, with_color=True)
         z = dview.depth_m
         valid_fraction = float(np.mean(np.isfinite(z) & (z >= min_z) & (z <= max_z)))
         visible = count_visible_objects(dview, config.min_object_fraction)
-        if poses is None and (valid_fraction < config.min_valid_fraction or visible < config.min_visible_objects):
+        if not given and (valid_fraction < config.min_valid_fraction or visible < config.min_visible_objects):
             failures += 1
             if failures >= config.max_attempts_per_frame:
                 raise ConfigError(
@@ -100,7 +119,7 @@ def render_frames(
                 T, depth_intr, color_intr, T_color_depth, rng=rng, noise=noise, frame_id=str(i), depth_view=dview
             )
         except InvalidFrame as exc:  # noise left no depth: a sampled view to redraw, a given pose to report
-            if poses is not None:
+            if given:
                 raise ConfigError(f"pose {i} sees no surface in the sensor's range: {exc.message}") from exc
             failures += 1
             if failures >= config.max_attempts_per_frame:
@@ -109,6 +128,10 @@ def render_frames(
         failures = 0
         writer.write(i, frame, T)
         out.append(RenderedFrame(i, T, valid_fraction, visible))
+        if walk_step_m is not None and walked is None:
+            sees = partial(_valid_share, renderer, depth_intr.scaled_to(depth_intr.width // 8, depth_intr.height // 8),
+                           T_color_depth, min_z, max_z)
+            walked = walk(sampler, placement, rng, n, step_m=walk_step_m, sees=sees)  # type: ignore[arg-type]
         if progress is not None:
             progress(len(out), n)
     return out
