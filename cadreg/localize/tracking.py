@@ -12,8 +12,9 @@ stages:
                 `Localizer.from_site`); accepted when the correction stays within what the camera can move in
                 the time since the state (`correction_limits`: the motion agrees) and the fitness holds;
                 hypotheses that fall behind the best are pruned
-    result      `tracked`: ok once a single hypothesis remains and its confidence reaches the search's
-                MatchConfig.min_ok_confidence (uncertain below it, the session follows it), ambiguous while several
+    result      `tracked`: ok once a single hypothesis remains, the frame pins it (its ICP covariance lets it slide
+                at most TrackConfig.max_pose_std_m) and its confidence reaches the search's
+                MatchConfig.min_ok_confidence (uncertain otherwise, the session follows it), ambiguous while several
                 remain; low_overlap (no pose, the session follows on) while the camera looks past the map's edge
                 (TrackConfig.coast_fitness)
     global      nothing accepted, no live state or a gap longer than TrackConfig.max_gap_s: the whole localizer,
@@ -50,7 +51,7 @@ from ..geometry import rotation_angle_deg, transform_points
 from ..result import Diagnostics, Hypothesis, LocalizationResult, Refinement, Roi, Status
 from .points import FramePoints, frame_to_points
 from .refine import GICP_NEIGHBORS, MIN_ROI_POINTS, RefineMap, covariance_from_hessian, crop_to_roi
-from .stages import StageTimer, confidence, low_overlap_confidence
+from .stages import StageTimer, confidence, low_overlap_confidence, pose_std_m
 
 if TYPE_CHECKING:
     from .localizer import Localizer
@@ -327,9 +328,14 @@ def _tracked_result(localizer: "Localizer", frame: Frame, state: TrackState, kep
     if len(kept) > 1:
         diag.notes.append(f"{len(kept)} hypotheses still fit (fitness " + ", ".join(f"{o.fitness:.3f}" for o in kept)
                           + "): ambiguous until the following frames tell them apart")
+    slide = pose_std_m(best.covariance)
     trust = confidence(best.fitness, best.rmse_m, best.fitness - rival, inlier_m=rc.inlier_m,
-                       confident_margin=mc.confident_margin)
-    if status == Status.OK and trust < mc.min_ok_confidence:
+                       confident_margin=mc.confident_margin, pose_std=slide, max_pose_std=cfg.max_pose_std_m)
+    if status == Status.OK and slide > cfg.max_pose_std_m:
+        status = Status.UNCERTAIN
+        diag.notes.append(f"the frame lets the tracked pose slide {slide * 1000:.1f} mm (more than "
+                          f"{cfg.max_pose_std_m * 1000:g}): uncertain, the session follows it")
+    elif status == Status.OK and trust < mc.min_ok_confidence:
         # a search's rule too (`stages.answer_status`): on 7-Scenes the tracked poses below it (0.35-0.47, with
         # 0.40-0.52 of the frame on the map) were 5-10 cm off where the session tracked back in from the map's edge
         status = Status.UNCERTAIN
