@@ -33,8 +33,9 @@ class Frame:
     T_color_depth : (4, 4) float64 rigid transform, depth camera -> colour camera.
     gravity_camera : (3,) unit vector of gravity ("down") in the colour camera frame, optional.
     T_map_camera_prior : (4, 4) optional pose prior (colour camera -> map).
-    search_region : where the client says the camera is (a ball in the map frame, or region ids): hypotheses
-        elsewhere are not considered.
+    search_region : where the client says the camera is (a ball in the map frame, or region ids): hypotheses whose
+        camera lies elsewhere (outside the ball, or the regions' boxes grown by `site.regions.CAMERA_MARGIN_M`) are
+        not considered.
     depth_range_m : the farthest depth (metres, along the optical axis) the depth camera measures a surface at, when
         the client knows it (a Kinect v1 about 4, a render its cut-off); None: not known (`localize.field_view`
         takes 4 m, or what the frame shows it reaches: `sensor_range_m`).

@@ -49,7 +49,8 @@ def _check_matrix4(value: list[list[float]] | None) -> list[list[float]] | None:
 
 class SearchRegionIn(_Wire):
     """Where the camera is, as the client knows it: a ball (`center` + `radius_m`, map frame, metres) or the ids
-    of site regions (`GET /v1/sites/{site_id}` lists them). Hypotheses elsewhere are not considered."""
+    of site regions (`GET /v1/sites/{site_id}` lists them). Hypotheses whose camera lies elsewhere (outside the ball,
+    or the regions' boxes grown by `site.regions.CAMERA_MARGIN_M`) are not considered."""
 
     center: list[WireFloat] | None = Field(None, min_length=3, max_length=3, description="[x, y, z], map frame, metres")
     radius_m: WireFloat | None = Field(None, gt=0, le=100_000, description="radius of the ball, metres")

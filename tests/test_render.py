@@ -222,8 +222,9 @@ def test_cli_render(scene0470_dir: Path, scene_mesh: LabelledMesh, tmp_path: Pat
                  "--no-noise", "--min-visible-objects", "0"]) == 0
     again = RecordedFrames.open(tmp_path / "again")
     assert all(np.allclose(again.pose(i), frames.pose(i)) for i in frames.indices)
-    # No labels but objects required: a config error, exit code 2.
+    # No labels but objects required: a config error, exit code 2; so are frames without a folder to write them to.
     assert main(["render", "--mesh", mesh_ply, "--out", str(tmp_path / "bad"), "--n", "1"]) == 2
+    assert main(["render", "--mesh", mesh_ply, "--n", "1", "--min-visible-objects", "0"]) == 2
 
 
 @pytest.mark.realdata

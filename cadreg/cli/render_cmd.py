@@ -39,7 +39,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="with --layout: also write the building as one mesh (colours, and NYU40 'label' where the "
                         "rooms have them), as a scan of the whole building would be: `site build --scan PLY` makes "
                         "a site of it (--n 0: the mesh alone)")
-    p.add_argument("--out", type=Path, required=True, help="frames folder to write")
+    p.add_argument("--out", type=Path, help="frames folder to write (not needed for --layout --mesh-out --n 0: the "
+                   "building's mesh alone)")
     p.add_argument("--n", type=int, default=0, help="number of frames (default: all --poses)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-noise", action="store_true", help="noiseless depth and colour")
@@ -117,6 +118,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(str(exc)) from exc
     if config.height_min_m > config.height_max_m or config.pitch_min_deg > config.pitch_max_deg:
         raise ConfigError("--height and --pitch take MIN MAX with MIN <= MAX")
+    if args.out is None and not (args.layout is not None and args.mesh_out is not None and args.n == 0):
+        raise ConfigError("--out is required: the frames folder to write")
     if args.layout is not None:
         if args.walk is not None:
             raise ConfigError("--walk renders inside one room (--site or --mesh), not a --layout")
