@@ -211,7 +211,8 @@ class MatchConfig(_Section):
                                   "covariance leaves it a standard deviation σ above this along some direction may "
                                   "slide (one wall, a floor and a wall): with a close rival it is uncertain, not "
                                   "ambiguous; else its confidence is scaled by this / σ and the slide probe "
-                                  "(slide_*) decides whether it is ok")
+                                  "(slide_*) decides whether it is ok. A tracked pose (`tracking.py`) above it is "
+                                  "uncertain, the session following it")
     objects_pin_share: float = Field(0.1, ge=0, le=1, description="a graph answer whose matched objects hold less "
                                      "than this share of the frame's points is probed for sliding as a pose the "
                                      "geometry alone found is")
@@ -385,14 +386,6 @@ class TrackConfig(_Section):
                                      "of its best are tracked")
     clear_margin: float = Field(0.05, ge=0, le=1, description="a tracked hypothesis whose fitness falls this far "
                                 "behind the best's is pruned; the session answers 'ok' once one is left")
-    # A close view of a bare wall, or of a wall and the floor, pins the tracked ICP along few directions, and the
-    # session slid along the others frame after frame while its answers stayed `ok` (a walk in scene0470, `cadreg
-    # render --walk`: ten frames 6-9 cm and up to 13 degrees off, confidence 0.95). Their ICP covariance let them slide
-    # 6.9-23 mm (one standard deviation); right tracked poses 1-3.4 mm (median 1.1-2.1) on four such walks and on
-    # the real RedKitchen frames, five of 390 walk frames 6-7.9 mm.
-    max_pose_std_m: float = Field(0.006, gt=0, description="a tracked pose whose ICP covariance lets it slide more "
-                                  "than this (one standard deviation, metres) along some direction is `uncertain`, "
-                                  "the session following it: the frame does not pin it, the motion does")
 
 
 class RegionConfig(_Section):

@@ -15,6 +15,7 @@ import concurrent.futures
 import itertools
 import logging
 import multiprocessing
+import multiprocessing.util
 import os
 import signal
 import threading
@@ -166,6 +167,7 @@ class WorkerPool:
         self._woken = False
         self._stopping = False
         self._thread: threading.Thread | None = None
+        self._at_exit: multiprocessing.util.Finalize | None = None
         self._started_once: set[int] = set()
         self._controls: list[_Control] = []  # controls not yet settled, by deadline
         self._service_s: float | None = None  # moving average of a job's time on a worker, seconds
@@ -179,6 +181,10 @@ class WorkerPool:
 
     def start(self) -> None:
         """Start the worker processes and the dispatcher; returns at once (see `ready`)."""
+        # A process that exits without `stop` stops its workers first: they ignore SIGTERM (the process group's
+        # signal is the parent's to act on, `worker.worker_main`), and multiprocessing's own exit would terminate
+        # them with it and then wait for them for ever. Its finalizers of a priority run before that.
+        self._at_exit = multiprocessing.util.Finalize(self, self.stop, exitpriority=10)
         with self._lock:
             for w in self._workers:
                 self._spawn(w)
@@ -321,6 +327,8 @@ class WorkerPool:
 
     def stop(self, timeout_s: float = 5.0) -> None:
         """Stop the dispatcher and the workers; jobs still queued fail with Overloaded."""
+        if self._at_exit is not None:
+            self._at_exit.cancel()  # stopped here, not again at exit
         with self._lock:
             self._stopping = True
             queued = list(self._queue)

@@ -161,7 +161,8 @@ def worker_main(conn, sites: list[tuple[str, str, FileChecks | None]], localize_
     # Ctrl-C in a terminal reaches the whole process group, and so does a service manager's SIGTERM to its control
     # group (systemd's default) or `kill -- -PGID`: the parent stops the workers in order, after the requests in
     # flight are answered. A worker killed by the signal itself failed its request with `worker_crashed` and was
-    # replaced by a new one the parent started during its own shutdown.
+    # replaced by a new one the parent started during its own shutdown. A worker still ends with its parent (its
+    # pipe closes), when the pool stops it (a message, then SIGKILL), and on SIGKILL: `kill -9 PID` stops one.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s[%(process)d]: %(message)s")

@@ -224,7 +224,9 @@ def test_cli_render(scene0470_dir: Path, scene_mesh: LabelledMesh, tmp_path: Pat
     assert all(np.allclose(again.pose(i), frames.pose(i)) for i in frames.indices)
     # No labels but objects required: a config error, exit code 2; so are frames without a folder to write them to.
     assert main(["render", "--mesh", mesh_ply, "--out", str(tmp_path / "bad"), "--n", "1"]) == 2
+    capsys.readouterr()
     assert main(["render", "--mesh", mesh_ply, "--n", "1", "--min-visible-objects", "0"]) == 2
+    assert "--out is required" in capsys.readouterr().err
 
 
 @pytest.mark.realdata
@@ -265,8 +267,9 @@ def test_a_walk_is_one_camera_carried_through_the_room(scene_mesh: LabelledMesh,
     # the same seed, the same walk
     again = render_frames(scene_mesh, tmp_path / "again", n, seed=3, walk_step_m=step, noise=None)
     assert all(np.array_equal(x.T_map_camera, y.T_map_camera) for x, y in zip(walked, again))
-    with pytest.raises(ConfigError, match="walk"):
-        render_frames(scene_mesh, tmp_path / "x", 2, walk_step_m=0.0)
+    for step_m in (0.0, 1e-6, 0.6):  # no step, thousands of placements a way, a step past a way's length
+        with pytest.raises(ConfigError, match="walk"):
+            render_frames(scene_mesh, tmp_path / "x", 2, walk_step_m=step_m)
 
 
 @pytest.mark.realdata

@@ -74,6 +74,7 @@ def test_sigterm_to_the_process_group_answers_the_request_in_flight_and_stops_wi
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait(10)
+    assert "response" in answer, "the request in flight got no answer"
     response = answer["response"]
     assert response.status_code == 200, response.text
     assert response.json()["status"] == "ok"
@@ -81,3 +82,35 @@ def test_sigterm_to_the_process_group_answers_the_request_in_flight_and_stops_wi
     # no worker died of the signal, so none failed its request or was started again during the shutdown
     assert "died with exit code" not in text and "retired" not in text, text[-3000:]
     assert "Application shutdown complete" in text
+
+
+def test_a_process_that_exits_without_stopping_its_pool_stops_the_workers(scene0470_site_dir: Path) -> None:
+    """The workers ignore SIGTERM, which is what multiprocessing's own exit sends its children before it waits for
+    them: a process that leaves without `WorkerPool.stop` (an error between the pool's start and the server's) must
+    still end, and its workers with it."""
+    script = (
+        "import sys\n"
+        "from service.pool import WorkerPool\n"
+        f"pool = WorkerPool({{'{SITE}': {str(scene0470_site_dir)!r}}}, workers=2, queue_depth=2, timeout_s=30)\n"
+        "pool.start()\n"
+        "assert pool.wait_ready(180)\n"
+        "print(' '.join(str(w['pid']) for w in pool.workers_info()), flush=True)\n"
+        "sys.exit(0)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=240,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"}, cwd=Path(__file__).resolve().parents[1])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    pids = [int(p) for p in proc.stdout.split()]
+    assert len(pids) == 2
+    deadline = time.monotonic() + 10
+    while any(_alive(pid) for pid in pids) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(pid) for pid in pids), "a worker outlived its pool's process"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True

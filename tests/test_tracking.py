@@ -278,7 +278,7 @@ ROOM_VIEW = np.array([[0.703333814674, 0.351714649815, -0.617752661056, 0.461798
 def test_a_tracked_pose_the_frame_does_not_pin_is_uncertain_and_followed(scene0470_dir: Path,
                                                                          scene0470_site_dir: Path,
                                                                          tmp_path: Path) -> None:
-    """A view the tracked ICP may slide along (its covariance: more than TrackConfig.max_pose_std_m) is answered
+    """A view the tracked ICP may slide along (its covariance: more than the search's MatchConfig.max_pose_std_m) is answered
     `uncertain` with its pose, and the session follows it; a view of the room from the same place is `ok`. On the
     walk these come from, ten such frames had been answered `ok` 6-9 cm and up to 13 degrees off."""
     from conftest import scene0470_mesh
@@ -288,7 +288,7 @@ def test_a_tracked_pose_the_frame_does_not_pin_is_uncertain_and_followed(scene04
     render_frames(scene0470_mesh(scene0470_dir), tmp_path, 0, poses=[WALL_VIEW, ROOM_VIEW], seed=5)
     frames = RecordedFrames.open(tmp_path)
     localizer = Localizer.from_site(Site.load(scene0470_site_dir))
-    limit = localizer.config.track.max_pose_std_m
+    limit = localizer.config.match.max_pose_std_m
     (wall, T_wall), (room, T_room) = frames.load(0), frames.load(1)
     r = localizer.track(wall, _state_at(T_wall), t_s=0.1).result
     assert r.diagnostics.mode == "tracked" and r.status == Status.UNCERTAIN, r.diagnostics.notes

@@ -120,6 +120,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--height and --pitch take MIN MAX with MIN <= MAX")
     if args.out is None and not (args.layout is not None and args.mesh_out is not None and args.n == 0):
         raise ConfigError("--out is required: the frames folder to write")
+    if args.walk is not None and args.poses is not None:
+        raise ConfigError("give --walk or --poses, not both")
     if args.layout is not None:
         if args.walk is not None:
             raise ConfigError("--walk renders inside one room (--site or --mesh), not a --layout")
@@ -130,8 +132,6 @@ def run(args: argparse.Namespace) -> int:
         mesh, mesh_desc = load_site_mesh(args.site)
     else:
         mesh, mesh_desc = LabelledMesh.from_ply(args.mesh, args.labels), str(args.mesh)
-    if args.walk is not None and args.poses is not None:
-        raise ConfigError("give --walk or --poses, not both")
     poses = read_poses(args.poses) if args.poses else None
     if poses is None and args.n <= 0:
         raise ConfigError("--n must be positive (or give --poses)")

@@ -59,7 +59,7 @@ from .mesh import LabelledMesh
 from .noise import depth_range_m
 from .poses import PoseSampler
 from .raycast import MeshRenderer, camera_rig, pixel_rays
-from .sequence import count_visible_objects
+from .sequence import count_visible_objects, valid_share
 
 
 # A corridor's mesh is a grid of cells this size (metres): flat panels need no finer, and the pose sampler reads
@@ -400,7 +400,7 @@ def _draw_view(samplers: _RoomSamplers, room_index: int, renderer: MeshRenderer,
         T_building_camera = room.T_building_room @ T_room_camera
         dview = renderer.cast(depth_intr, T_building_camera @ T_color_depth, with_color=True)
         z = dview.depth_m
-        if (float(np.mean(np.isfinite(z) & (z >= min_z) & (z <= max_z))) < config.min_valid_fraction
+        if (valid_share(z, min_z, max_z) < config.min_valid_fraction
                 or count_visible_objects(dview, config.min_object_fraction) < min_objects):
             continue
         try:

@@ -126,6 +126,8 @@ WALK_MIN_VALID = 0.1
 WALK_PLACE_TRIES = 200
 WALK_MIN_LEG_M = 0.5
 WALK_CHOICES = 4
+# A walk's step: at least this (a finer one makes thousands of placements a way), at most WALK_MIN_LEG_M.
+WALK_MIN_STEP_M = 0.005
 
 
 def walk(sampler: PoseSampler, start: Placement, rng: np.random.Generator, n: int, *, step_m: float,
@@ -133,15 +135,16 @@ def walk(sampler: PoseSampler, start: Placement, rng: np.random.Generator, n: in
     """`n` placements of one camera carried through the room from `start` (included), as a person films a room:
     it turns on the spot towards a next place (`WALK_SPIN_DEG` a frame) and walks there in a straight line,
     `step_m` a frame, looking the way it goes; pitch and roll drift a little (`WALK_TILT_DEG`) within the sampler's
-    ranges. Every step stands where `PoseSampler.position_ok` allows and shows a surface on WALK_MIN_VALID of the
-    view's rays (`sees(T_map_camera)`: the share, the caller's check). Where no next place is found (a pocket of
-    furniture), it turns on the spot. Deterministic for a given rng state."""
+    ranges. Every step stands where `PoseSampler.position_ok` allows, and every step and turn shows a surface on
+    WALK_MIN_VALID of the view's rays (`sees(T_map_camera)`: the share, the caller's check). Where no next place is
+    found (a pocket of furniture), it turns on the spot. step_m: WALK_MIN_STEP_M to WALK_MIN_LEG_M (every way to a
+    next place holds a step). Deterministic for a given rng state."""
     cfg = sampler.config
     out: list[Placement] = [start]
     route: list[Placement] = []  # the placements still ahead on the way to the next place
     while len(out) < n:
         if not route:
-            route = _leg(sampler, out[-1], rng, step_m, sees)
+            route = _route_to_next_place(sampler, out[-1], rng, step_m, sees)
         last = out[-1]
         pitch = float(np.clip(last.pitch_deg + rng.normal(0.0, WALK_TILT_DEG), cfg.pitch_min_deg, cfg.pitch_max_deg))
         roll = float(np.clip(last.roll_deg + rng.normal(0.0, WALK_TILT_DEG), -cfg.roll_max_deg, cfg.roll_max_deg))
@@ -149,11 +152,15 @@ def walk(sampler: PoseSampler, start: Placement, rng: np.random.Generator, n: in
     return out
 
 
-def _leg(sampler: PoseSampler, at: Placement, rng: np.random.Generator, step_m: float,
-         sees: Callable[[np.ndarray], float]) -> list[Placement]:
+def _route_to_next_place(sampler: PoseSampler, at: Placement, rng: np.random.Generator, step_m: float,
+                         sees: Callable[[np.ndarray], float]) -> list[Placement]:
     """The placements from `at` to a next place (its pitch and roll as `at`'s): the turns on the spot towards it,
-    then the steps there. None found: a quarter turn on the spot."""
-    legs: list[tuple[list[Placement], list[Placement]]] = []  # (turns, steps)
+    then the steps there, each where the sampler allows and showing a surface on WALK_MIN_VALID of the view. None
+    found: a quarter turn on the spot where it shows as much, else `at` again (its view was rendered)."""
+    def shows(p: Placement) -> bool:
+        return sees(p.pose()) >= WALK_MIN_VALID
+
+    candidates: list[tuple[list[Placement], list[Placement]]] = []  # (turns, steps)
     for _ in range(WALK_PLACE_TRIES):
         xy = rng.uniform(sampler.xy_min, sampler.xy_max)
         way = np.array([xy[0], xy[1], at.position[2]]) - at.position
@@ -163,13 +170,15 @@ def _leg(sampler: PoseSampler, at: Placement, rng: np.random.Generator, step_m: 
         yaw = float(np.degrees(np.arctan2(way[1], way[0])))
         steps = [replace(at, position=at.position + way * (k * step_m / length), yaw_deg=yaw % 360.0)
                  for k in range(1, int(length / step_m) + 1)]
-        if all(sampler.position_ok(p.position, p.height_m) and sees(p.pose()) >= WALK_MIN_VALID for p in steps):
-            legs.append((_turns(at, yaw), steps))
-            if len(legs) == WALK_CHOICES:
+        turns = _turns(at, yaw)
+        if all(sampler.position_ok(p.position, p.height_m) for p in steps) and all(map(shows, turns + steps)):
+            candidates.append((turns, steps))
+            if len(candidates) == WALK_CHOICES:
                 break
-    if not legs:
-        return _turns(at, at.yaw_deg + 90.0)
-    turns, steps = min(legs, key=lambda leg: len(leg[0]))
+    if not candidates:
+        turns = _turns(at, at.yaw_deg + 90.0)
+        return turns if all(map(shows, turns)) else [at]
+    turns, steps = min(candidates, key=lambda c: len(c[0]))
     return turns + steps
 
 

@@ -15,7 +15,7 @@ from ..errors import ConfigError, InvalidFrame
 from ..io.frames import FramesWriter
 from .mesh import LabelledMesh
 from .noise import depth_range_m
-from .poses import Placement, PoseSampler, walk
+from .poses import WALK_MIN_LEG_M, WALK_MIN_STEP_M, Placement, PoseSampler, walk
 from .raycast import MeshRenderer, View, camera_rig
 
 
@@ -41,12 +41,17 @@ def count_visible_objects(view: View, min_fraction: float) -> int:
     return int(np.count_nonzero(counts >= min_fraction * view.instances.size))
 
 
-def _valid_share(renderer: MeshRenderer, coarse: CameraIntrinsics, T_color_depth: np.ndarray, min_z: float,
-                 max_z: float, T_map_camera: np.ndarray) -> float:
-    """The share of a coarse grid of the depth camera's rays (`coarse`: the camera at a low resolution) that meet a
-    surface within the sensor's range at T_map_camera (colour camera -> map): a walk's view check."""
-    z = renderer.cast(coarse, T_map_camera @ T_color_depth, with_color=False).depth_m
-    return float(np.mean(np.isfinite(z) & (z >= min_z) & (z <= max_z)))
+def valid_share(depth_m: np.ndarray, min_z: float, max_z: float) -> float:
+    """The share of a depth image's pixels (z-depth, metres, inf where nothing) on a surface within the sensor's range
+    [min_z, max_z]: a view's check."""
+    return float(np.mean(np.isfinite(depth_m) & (depth_m >= min_z) & (depth_m <= max_z)))
+
+
+def _walk_view_share(renderer: MeshRenderer, coarse: CameraIntrinsics, T_color_depth: np.ndarray, min_z: float,
+                     max_z: float, T_map_camera: np.ndarray) -> float:
+    """`valid_share` of the depth camera at T_map_camera (colour camera -> map) cast at a low resolution (`coarse`):
+    a walk's view check, made for each of its candidate steps."""
+    return valid_share(renderer.cast(coarse, T_map_camera @ T_color_depth, with_color=False).depth_m, min_z, max_z)
 
 
 def render_frames(
@@ -75,8 +80,9 @@ def render_frames(
         n = len(poses)
     if n <= 0:
         raise ConfigError(f"number of frames must be positive, got {n}")
-    if walk_step_m is not None and (poses is not None or not walk_step_m > 0):
-        raise ConfigError(f"a walk takes a positive step and no given poses, got step {walk_step_m} m")
+    if walk_step_m is not None and (poses is not None or not WALK_MIN_STEP_M <= walk_step_m <= WALK_MIN_LEG_M):
+        raise ConfigError(f"a walk takes no given poses and a step of {WALK_MIN_STEP_M:g}-{WALK_MIN_LEG_M:g} m, "
+                          f"got {walk_step_m} m")
     rng = np.random.default_rng(seed)
     renderer = MeshRenderer(mesh)
     sampler = PoseSampler(renderer, config) if poses is None else None
@@ -87,7 +93,8 @@ def render_frames(
     min_z = noise.min_depth_m if noise is not None else 0.0
     max_z = noise.max_depth_m if noise is not None else np.inf
     out: list[RenderedFrame] = []
-    walked: list[Placement] | None = None  # a walk's placements, once its first view is drawn
+    start: Placement | None = None  # a walk's first placement, once its view is drawn and rendered
+    walked: list[Placement] | None = None  # ... and then the walk from it
     failures = 0
     while len(out) < n:
         i = len(out)
@@ -97,14 +104,14 @@ def render_frames(
         elif walked is not None:
             T = walked[i].pose()
         else:
-            placement = sampler.draw(rng)  # type: ignore[union-attr]
-            if placement is None:
+            start = sampler.draw(rng)  # type: ignore[union-attr]
+            if start is None:
                 raise ConfigError("no camera position inside the room passes the height/clearance checks")
-            T = placement.pose()
+            T = start.pose()
         # Judge a sampled view on the depth camera's cast (labels included) before paying for the colour camera.
         dview = renderer.cast(depth_intr, T @ T_color_depth, with_color=True)
         z = dview.depth_m
-        valid_fraction = float(np.mean(np.isfinite(z) & (z >= min_z) & (z <= max_z)))
+        valid_fraction = valid_share(z, min_z, max_z)
         visible = count_visible_objects(dview, config.min_object_fraction)
         if not given and (valid_fraction < config.min_valid_fraction or visible < config.min_visible_objects):
             failures += 1
@@ -128,10 +135,10 @@ def render_frames(
         failures = 0
         writer.write(i, frame, T)
         out.append(RenderedFrame(i, T, valid_fraction, visible))
-        if walk_step_m is not None and walked is None:
-            sees = partial(_valid_share, renderer, depth_intr.scaled_to(depth_intr.width // 8, depth_intr.height // 8),
-                           T_color_depth, min_z, max_z)
-            walked = walk(sampler, placement, rng, n, step_m=walk_step_m, sees=sees)  # type: ignore[arg-type]
+        if walk_step_m is not None and walked is None and start is not None:
+            sees = partial(_walk_view_share, renderer,
+                           depth_intr.scaled_to(depth_intr.width // 8, depth_intr.height // 8), T_color_depth, min_z, max_z)
+            walked = walk(sampler, start, rng, n, step_m=walk_step_m, sees=sees)  # type: ignore[arg-type]
         if progress is not None:
             progress(len(out), n)
     return out
