@@ -262,8 +262,8 @@ def test_a_tracked_pose_below_the_ok_confidence_is_uncertain_and_followed(site_d
     assert strict.track(nxt, tracked.state, t_s=2 / 30.0).result.diagnostics.mode == "tracked"
 
 
-# Two views of one walk through scene0470 (`cadreg render --site scene0470 --walk 0.05 --seed 2`, frames 70 and 80):
-# close to a wall, the wall and the floor in view, and turned to face the room.
+# Two views from one place in scene0470, on a walk an early version of `cadreg render --walk` made: close to a wall,
+# the wall and the floor in view, and turned to face the room.
 WALL_VIEW = np.array([[-0.090195954011, 0.524066703990, -0.846887701912, 0.461798390639],
                       [0.995667185263, 0.028138420030, -0.088628920271, 1.033307535457],
                       [-0.022617384250, -0.851212264413, -0.524333991691, 1.714360621124],
@@ -280,7 +280,7 @@ def test_a_tracked_pose_the_frame_does_not_pin_is_uncertain_and_followed(scene04
                                                                          tmp_path: Path) -> None:
     """A view the tracked ICP may slide along (its covariance: more than the search's MatchConfig.max_pose_std_m) is answered
     `uncertain` with its pose, and the session follows it; a view of the room from the same place is `ok`. On the
-    walk these come from, ten such frames had been answered `ok` 6-9 cm and up to 13 degrees off."""
+    walk these come from, ten frames along that wall had been answered `ok` 6-9 cm and up to 13 degrees off."""
     from conftest import scene0470_mesh
     from cadreg.localize.stages import pose_std_m
     from cadreg.render import render_frames

@@ -333,11 +333,10 @@ def _tracked_result(localizer: "Localizer", frame: Frame, state: TrackState, kep
                        confident_margin=mc.confident_margin, pose_std=slide, max_pose_std=mc.max_pose_std_m)
     if status == Status.OK and slide > mc.max_pose_std_m:
         # A search's rule too (MatchConfig.max_pose_std_m): a close view of a bare wall, or of a wall and the floor,
-        # pins the tracked ICP along few directions, and on a walk through scene0470 (`cadreg render --walk`) a
-        # session slid along one frame after frame, ten frames answered `ok` 6-9 cm and up to 13 degrees off
-        # (confidence 0.95); their covariance let them slide 6.9-23 mm. Right tracked poses: 1.1-2.1 mm at the
-        # median, at most 3.4 mm on the real RedKitchen frames and on two of four walks; five of the walks' 390
-        # right frames 6-7.9 mm.
+        # pins the tracked ICP along few directions, and a session slides along it frame after frame (on a walk
+        # through scene0470, `cadreg render --walk`, ten frames in a row answered `ok` 6-9 cm and up to 13 degrees
+        # off, confidence 0.95; their covariance let them slide 6.9-23 mm). Right tracked poses slide 1.5 mm at the
+        # median, at most 3.4 mm on the real RedKitchen frames; on eight walks, 11 of 800 frames 6-12 mm.
         status = Status.UNCERTAIN
         diag.notes.append(f"the frame lets the tracked pose slide {slide * 1000:.1f} mm (more than "
                           f"{mc.max_pose_std_m * 1000:g} mm): uncertain, the session follows it")
