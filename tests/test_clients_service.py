@@ -8,12 +8,10 @@ import json
 import os
 import subprocess
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
-import httpx
 import numpy as np
 import pytest
 
@@ -25,7 +23,7 @@ from clients.frames import encode_recorded
 from clients.http import Client, pose_of
 from clients.retry import RetryPolicy
 from clients.zenoh_client import ZenohClient
-from test_service_support import free_port, free_ports
+from test_service_support import free_port, free_ports, wait_served
 
 pytestmark = pytest.mark.realdata
 SITE = "scene0470"
@@ -62,16 +60,7 @@ def served(tmp_path_factory: pytest.TempPathFactory, scene0470_dir: Path) -> Ite
                                 stderr=subprocess.STDOUT)
     url = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 180
-        while True:
-            assert proc.poll() is None, f"cadreg serve exited:\n{log.read_text()[-3000:]}"
-            try:
-                if httpx.get(url + "/readyz", timeout=2).json().get("ready"):
-                    break
-            except (httpx.HTTPError, ValueError):
-                pass
-            assert time.monotonic() < deadline, f"service not ready:\n{log.read_text()[-3000:]}"
-            time.sleep(0.3)
+        wait_served(proc, url, log)
         yield Served(url, f"tcp/127.0.0.1:{zport}", root / "frames", log, proc.pid)
     finally:
         proc.terminate()

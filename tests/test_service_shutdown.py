@@ -14,15 +14,16 @@ from pathlib import Path
 
 import httpx
 
-from test_service_support import free_port, load_frames, multipart, render_frames
+from test_service_support import free_port, load_frames, multipart, render_frames, wait_served
 
 SITE = "scene0470"
 SLEEP_S = 3.0  # the test hook's frame id keeps the worker busy this long: the signal comes mid-request
 
 
-def _group_alive(pgid: int) -> bool:
+def _alive(pid: int, *, group: bool = False) -> bool:
+    """Whether process `pid` (with group: any process of the group `pid` leads) still exists."""
     try:
-        os.killpg(pgid, 0)
+        (os.killpg if group else os.kill)(pid, 0)
     except ProcessLookupError:
         return False
     return True
@@ -43,16 +44,7 @@ def test_sigterm_to_the_process_group_answers_the_request_in_flight_and_stops_wi
                                  "--port", str(port), "--workers", "2", "--no-zenoh"], env=env, stdout=out,
                                 stderr=subprocess.STDOUT, start_new_session=True)
     try:
-        deadline = time.monotonic() + 180
-        while True:
-            assert proc.poll() is None, f"cadreg serve exited:\n{log.read_text()[-3000:]}"
-            try:
-                if httpx.get(url + "/readyz", timeout=2).json().get("ready"):
-                    break
-            except (httpx.HTTPError, ValueError):
-                pass
-            assert time.monotonic() < deadline, f"service not ready:\n{log.read_text()[-3000:]}"
-            time.sleep(0.3)
+        wait_served(proc, url, log)
         answer: dict = {}
 
         def request() -> None:
@@ -67,9 +59,9 @@ def test_sigterm_to_the_process_group_answers_the_request_in_flight_and_stops_wi
         # uvicorn ends a graceful shutdown by raising the signal again: the status says what stopped it
         assert proc.wait(60) in (0, -signal.SIGTERM), log.read_text()[-3000:]
         deadline = time.monotonic() + 10
-        while _group_alive(proc.pid) and time.monotonic() < deadline:
+        while _alive(proc.pid, group=True) and time.monotonic() < deadline:
             time.sleep(0.1)
-        assert not _group_alive(proc.pid), "a process of the service outlived it"
+        assert not _alive(proc.pid, group=True), "a process of the service outlived it"
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
@@ -107,10 +99,3 @@ def test_a_process_that_exits_without_stopping_its_pool_stops_the_workers(scene0
         time.sleep(0.1)
     assert not any(_alive(pid) for pid in pids), "a worker outlived its pool's process"
 
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    return True

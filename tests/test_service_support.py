@@ -84,6 +84,21 @@ _RENDERED: dict[tuple[str, int], Path] = {}
 _LIBRARY: dict[tuple[str, str], list[dict[str, Any]]] = {}
 
 
+def wait_served(proc: subprocess.Popen, url: str, log: Path, timeout_s: float = 180.0) -> None:
+    """Until the `cadreg serve` subprocess `proc` (its output in `log`) answers /readyz at `url` ready; it must not
+    exit meanwhile (the log's tail says why it did)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        assert proc.poll() is None, f"cadreg serve exited:\n{log.read_text()[-3000:]}"
+        try:
+            if httpx.get(url + "/readyz", timeout=2).json().get("ready"):
+                return
+        except (httpx.HTTPError, ValueError):
+            pass
+        assert time.monotonic() < deadline, f"service not ready:\n{log.read_text()[-3000:]}"
+        time.sleep(0.3)
+
+
 def render_frames(site_dir: Path, out: Path, n: int = 4) -> Path:
     """Render `n` frames of a site with `cadreg render` (the user's command) into `out`; a session renders each
     (site, n) once and hands the same folder to later callers."""
