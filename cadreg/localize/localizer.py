@@ -821,7 +821,7 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         before a wall had its true place among the candidates 22 cm off, seen through and passed by, and the leaf 5 cm
         off that the second look found was dropped as the same place; the answer went 1.4 m and 85° off (`ok`,
         confidence 0.93)."""
-        leaves = [c for c in leaves if self._distinct(c.T_map_camera, T_answer)]
+        leaves = self._apart_from(leaves, [T_answer])
         if not leaves or not candidates:
             return leaves, candidates
         scores = np.array([k.score for k in candidates])
