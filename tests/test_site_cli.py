@@ -70,3 +70,50 @@ def test_errors_name_the_file_and_exit_2(scene0470_dir, scene0470_site_dir, tmp_
     with pytest.raises(SystemExit):
         main(["site", "build", "--scan", "a.ply", "--scan2cad", "b.json", "--out", str(tmp_path / "y")])
     assert "--cad-root" in capsys.readouterr().err
+
+
+# Run in a fresh process on an empty numba cache: counts what `Localizer.warm` (a server worker's start) compiles.
+_COMPILED_AT_WARM = """
+import json, sys
+from numba.core import event
+from cadreg.localize.localizer import Localizer
+from cadreg.site.bundle import Site
+
+compiled = []
+
+class Compiles(event.Listener):
+    def on_start(self, ev):
+        compiled.append(ev.data["dispatcher"].py_func.__qualname__)
+
+    def on_end(self, ev):
+        pass
+
+event.register("numba:compile", Compiles())
+Localizer.from_site(Site.load(sys.argv[1])).warm()
+print(json.dumps(compiled))
+"""
+
+
+def test_site_compose_leaves_the_loops_a_server_compiles_in_numbas_cache(scene0470_site_dir, tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    from tracking_rooms import write_layout
+
+    layout = write_layout(scene0470_site_dir, tmp_path)
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    site = tmp_path / "site"
+
+    def compiled_at_warm() -> list[str]:
+        run = subprocess.run([sys.executable, "-c", _COMPILED_AT_WARM, str(site)], env=env, capture_output=True,
+                             text=True, timeout=300, check=True)
+        return json.loads(run.stdout.strip().splitlines()[-1])
+
+    composed = subprocess.run([sys.executable, "-m", "cadreg.cli.main", "site", "compose", str(layout), "--out",
+                               str(site)], env=env, capture_output=True, text=True, timeout=300, check=True)
+    assert "compiled loops for this site are in numba's cache" in composed.stderr
+    assert json.loads(composed.stdout)["rooms"] == 2  # stdout stays the summary
+    assert compiled_at_warm() == []  # a worker's start reads every loop from the cache
+    shutil.rmtree(tmp_path / "numba")
+    assert len(compiled_at_warm()) > 20  # and without what compose left there, compiles them

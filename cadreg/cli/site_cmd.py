@@ -49,6 +49,17 @@ def write_auto_cad(site, out: Path, file=None) -> Path | None:
     return path
 
 
+def compile_loops_for(site) -> None:
+    """Compile the localizer's loops for the site's kind of field now (`localizer.compile_loops_for`), so that a
+    server's first start on this machine does not, and say so on stderr (stdout stays the command's summary)."""
+    from ..localize.localizer import compile_loops_for as compile_for_site
+
+    t0 = time.perf_counter()
+    compile_for_site(site)
+    print(f"the localizer's compiled loops for this site are in numba's cache ({time.perf_counter() - t0:.1f} s)",
+          file=sys.stderr)
+
+
 def _build(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
@@ -70,6 +81,7 @@ def _build(args: argparse.Namespace) -> int:
         bar.close()
     site.save(args.out)
     write_auto_cad(site, args.out)
+    compile_loops_for(site)
     n_cad = sum(1 for n in site.graph.nodes if n.source == "cad")
     regions = len(site.regions)
     print(f"site {site.site_id} version {site.version}: {len(site.map)} map points ({len(site.raw)} raw), "
