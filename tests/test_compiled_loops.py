@@ -1,6 +1,13 @@
 """The compiled loops: the small linear algebra they do by hand (numba's np.linalg bindings and array expressions
 cost seconds of a cold cache's first start), each against numpy or scipy, with the normals of neighbourhoods that
-have no single least axis; and the order a server's workers compile them in."""
+have no single least axis; the order a server's workers compile them in; and that `site compose` leaves them
+compiled for the server's first start."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -11,6 +18,7 @@ from cadreg.localize import localizer
 from cadreg.localize.field_kernels import _rotation, _solve_positive_definite, _turn_in_place
 from cadreg.localize.grid_gicp import _least_axis
 from service import worker
+from tracking_rooms import write_layout
 
 
 @pytest.mark.parametrize("n", [4, 6])
@@ -68,3 +76,45 @@ def test_workers_of_odd_slots_compile_from_the_other_end(monkeypatch) -> None:
     assert calls == forward[::-1]
     config = LocalizeConfig()
     assert [worker._Sites(config, slot).compile_last_first for slot in range(4)] == [False, True, False, True]
+
+
+# Run in a fresh process on an empty numba cache: counts what `Localizer.warm` (a server worker's start) compiles.
+_COMPILED_AT_WARM = """
+import json, sys
+from numba.core import event
+from cadreg.localize.localizer import Localizer
+from cadreg.site.bundle import Site
+
+compiled = []
+
+class Compiles(event.Listener):
+    def on_start(self, ev):
+        compiled.append(ev.data["dispatcher"].py_func.__qualname__)
+
+    def on_end(self, ev):
+        pass
+
+event.register("numba:compile", Compiles())
+Localizer.from_site(Site.load(sys.argv[1])).warm()
+print(json.dumps(compiled))
+"""
+
+
+@pytest.mark.realdata
+def test_site_compose_leaves_the_loops_a_server_compiles_in_numbas_cache(scene0470_site_dir, tmp_path) -> None:
+    layout = write_layout(scene0470_site_dir, tmp_path)
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    site = tmp_path / "site"
+
+    def compiled_at_warm() -> list[str]:
+        run = subprocess.run([sys.executable, "-c", _COMPILED_AT_WARM, str(site)], env=env, capture_output=True,
+                             text=True, timeout=300, check=True)
+        return json.loads(run.stdout.strip().splitlines()[-1])
+
+    composed = subprocess.run([sys.executable, "-m", "cadreg.cli.main", "site", "compose", str(layout), "--out",
+                               str(site)], env=env, capture_output=True, text=True, timeout=300, check=True)
+    assert "compiled loops for this site are in numba's cache" in composed.stderr
+    assert json.loads(composed.stdout)["rooms"] == 2  # stdout stays the summary
+    assert compiled_at_warm() == []  # a worker's start reads every loop from the cache
+    shutil.rmtree(tmp_path / "numba")
+    assert len(compiled_at_warm()) > 20  # and without what compose left there, compiles them

@@ -15,12 +15,12 @@ from ..errors import ConfigError
 
 def _compose(args: argparse.Namespace) -> int:
     from ..site.compose import compose_site, read_layout
-    from .site_cmd import compile_loops_for
+    from .site_cmd import compile_site_loops
 
     layout = read_layout(args.layout)
     site = compose_site(layout, args.layout.parent)
     site.save(args.out)
-    compile_loops_for(site)
+    compile_site_loops(site)
     counts = site.manifest["counts"]
     print(json.dumps({"site_id": site.site_id, "version": site.version, "rooms": len(layout.rooms),
                       "points": counts["points"], "raw_points": counts["raw_points"], "nodes": counts["nodes"],

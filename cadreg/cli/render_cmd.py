@@ -276,7 +276,7 @@ def _site_fuse(args: argparse.Namespace) -> int:
     from ..config import AutoCadConfig, FuseConfig
     from ..io.frames import RecordedFrames, write_indexed_poses
     from ..site.fuse import fuse_site, map_accuracy, pose_offset, pose_offset_by_window
-    from .site_cmd import compile_loops_for, write_auto_cad
+    from .site_cmd import compile_site_loops, write_auto_cad
 
     if args.auto_cad and args.cad_root is None:
         raise ConfigError("--auto-cad needs --cad-root")
@@ -306,7 +306,7 @@ def _site_fuse(args: argparse.Namespace) -> int:
         site = fuse_site(frames, indices, site_id=site_id, config=config, progress=progress,
                          cad_root=args.cad_root, auto_cad=AutoCadConfig() if args.auto_cad else None)
     site.save(args.out)
-    compile_loops_for(site)
+    compile_site_loops(site)
     report = {"site_id": site.site_id, "version": site.version, "frames": len(indices),
               "points": len(site.map), "nodes": len(site.graph.nodes), "out": str(args.out)}
     if args.auto_cad:

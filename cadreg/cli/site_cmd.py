@@ -49,13 +49,13 @@ def write_auto_cad(site, out: Path, file=None) -> Path | None:
     return path
 
 
-def compile_loops_for(site) -> None:
+def compile_site_loops(site) -> None:
     """Compile the localizer's loops for the site's kind of field now (`localizer.compile_loops_for`), so that a
     server's first start on this machine does not, and say so on stderr (stdout stays the command's summary)."""
-    from ..localize.localizer import compile_loops_for as compile_for_site
+    from ..localize.localizer import compile_loops_for
 
     t0 = time.perf_counter()
-    compile_for_site(site)
+    compile_loops_for(site)
     print(f"the localizer's compiled loops for this site are in numba's cache ({time.perf_counter() - t0:.1f} s)",
           file=sys.stderr)
 
@@ -81,7 +81,7 @@ def _build(args: argparse.Namespace) -> int:
         bar.close()
     site.save(args.out)
     write_auto_cad(site, args.out)
-    compile_loops_for(site)
+    compile_site_loops(site)
     n_cad = sum(1 for n in site.graph.nodes if n.source == "cad")
     regions = len(site.regions)
     print(f"site {site.site_id} version {site.version}: {len(site.map)} map points ({len(site.raw)} raw), "

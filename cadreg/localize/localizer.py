@@ -119,12 +119,14 @@ def compile_loops(field_dtypes: tuple[type[np.generic], ...] = field_kernels.FIE
         step()
 
 
-def compile_loops_for(site: Site) -> None:
-    """`compile_loops` for the kind of grid the site's field holds (a building's stored bytes, else a room's float
-    metres, as `Localizer.warm` compiles). `site build` and `site compose` run it, so that the first start of a
-    server or bench on this machine reads the loops from numba's cache (0.2 s) instead of compiling them (10 s on
-    one core for a building's; once per install and code change)."""
-    compile_loops((site.field_grid.grid.dtype.type if site.field_grid is not None else np.float32,))
+def compile_loops_for(site: Site, *, last_first: bool = False) -> None:
+    """`compile_loops` for the kind of grid the site's field holds: a building's stored bytes, else the float metres
+    a room's field is built in at load (`Localizer.from_site`). `Localizer.warm` runs it at a server's start, and
+    `site build`, `site compose` and `site fuse` when they end, so that the first server or bench on this machine
+    reads the loops from numba's cache (0.2 s) instead of compiling them (10 s on one core for a building's; once
+    per install and code change)."""
+    compile_loops((site.field_grid.grid.dtype.type if site.field_grid is not None else np.float32,),
+                  last_first=last_first)
 
 
 class Localizer(RefineStage, BuildingViews, FallbackStage):
@@ -221,7 +223,7 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
 
     def warm(self, *, compile_last_first: bool = False) -> "Localizer":
         """Build now what is otherwise built on first use (the map's FPFH features for the fallback, about a second
-        a site; the compiled loops, `compile_loops`, in the reverse order if compile_last_first), so that a
+        a site; the compiled loops, `compile_loops_for`, in the reverse order if compile_last_first), so that a
         long-running server does not make its first requests pay for it."""
         if len(self.maps) == 1:
             self.refine_map.fine_target()
@@ -232,7 +234,7 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         # the whole map in every worker: built on first use there.
         if self.config.fallback.enabled and len(self.maps) == 1:
             self.fpfh()
-        compile_loops((self.field.grid.dtype.type,), last_first=compile_last_first)
+        compile_loops_for(self.site, last_first=compile_last_first)
         if self.twins is not None:
             # after the loops are compiled: the budget is for the rows, not for the RANSAC's compilation
             self.twins.warm(TWINS_WARM_S)
