@@ -224,8 +224,10 @@ def auto_cad_placements(
         trs = TRS.from_affine(r.accepted.A_map_cad)
         placements.append(CadPlacement(m.mesh, trs.matrix(), m.cls, m.cad_id, origin="auto",
                                        fit=r.accepted.fit.to_dict(), sym=r.accepted.sym, trs=trs))
+    # At debug: the report carries the notes, and `site build` / `site fuse` print them (`note: ...`); at info the
+    # CLI's console showed each twice.
     for note in notes[len(library.notes):]:
-        log.info("auto-cad: %s", note)
+        log.debug("auto-cad: %s", note)
     report = {
         "library": str(library.root), "library_models": len(library.models), "config": auto.model_dump(mode="json"),
         "instances": [r.to_dict() for r in results], "aligned": len(placements),
