@@ -146,6 +146,10 @@ class FrameConfig(_Section):
     min_depth_m: float = Field(0.1, ge=0)
     max_depth_m: float = Field(6.0, gt=0)
     pixel_stride: int = Field(2, ge=1, description="use every n-th depth pixel: halves time at no loss (DESIGN §9)")
+    stride_reference_pixels: int = Field(640 * 480, ge=1, description="a depth image of more pixels is sampled with "
+                                         "the stride that takes as many of them as pixel_stride (and the tracking "
+                                         "stride) takes of one this size (`points.stride_for`): the points, and what "
+                                         "every later stage costs, stay bounded whatever the image's size")
     voxel_size_m: float = Field(0.03, gt=0, description="voxel down-sampling of the frame points for clustering and scoring")
     min_points: int = Field(100, ge=1, description="fewer valid depth points than this is no frame to register "
                             "(too few for a plane, a cluster and a GICP)")
@@ -326,6 +330,9 @@ class FallbackConfig(_Section):
 
     enabled: bool = True
     voxel_size_m: float = Field(0.05, gt=0, description="FPFH + RANSAC resolution")
+    fpfh_max_points: int = Field(2000, ge=100, description="the last resort describes and matches at most this many "
+                                 "of the frame's voxels (a seeded random subset): a frame of surfaces has 1-2 k at 5 cm, "
+                                 "a depth image of noise 60-180 k, which took 5-21 s (now 0.2 s)")
     grid_step_m: float = Field(0.2, gt=0, description="position step of `fallback.floor_grid_search` (kept for "
                                "callers; the localizer's label-free stage is LabelFreeConfig's search)")
     yaw_step_deg: float = Field(10.0, gt=0, le=90, description="yaw step of `fallback.floor_grid_search`")

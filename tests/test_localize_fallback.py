@@ -137,3 +137,49 @@ def test_each_kept_leaf_has_its_best_same_place_alternate_verified_too() -> None
     # each kept leaf has its own: 0.05 m is 0.13 m from the leaf at 0.18 m, and 0.5 m lies 0.28 m from the one at 0.22
     assert FallbackStage._same_place_alternates(owner, hyp, [0, 2, 3]) == [1, 4]
     assert FallbackStage._same_place_alternates(owner, hyp, list(range(len(x)))) == []
+
+
+def test_a_depth_image_of_noise_is_sampled_and_described_within_bounds(scene, monkeypatch) -> None:
+    """A hostile client's depth image of noise fills its whole frustum with points: the search samples a large
+    image no denser than a 640 x 480 one (`points.stride_for`), and the last resort describes at most
+    FallbackConfig.fpfh_max_points of its voxels (one of 640 x 480 noise took 5.4 s, one of 1280 x 960 over 20 s)."""
+    from dataclasses import replace
+
+    from cadreg.config import LocalizeConfig
+    from cadreg.localize import Localizer
+    from cadreg.localize.points import stride_for
+
+    config = LocalizeConfig()
+    described: list[int] = []
+    features = FpfhRansac._features
+    monkeypatch.setattr(FpfhRansac, "_features", lambda self, pcd: described.append(len(pcd.points)) or features(self, pcd))
+    loc = Localizer.from_site(scene.site, config)
+    K = CameraIntrinsics(1280, 960, 1155.7, 1155.7, 639.5, 479.5)
+    rng = np.random.default_rng(0)
+    noise = replace(render_frame(scene, look_pose(np.array([3.1, 2.2, 1.45]), 0.0, np.radians(30.0)), intrinsics=K),
+                    depth=rng.integers(100, 6000, (960, 1280)).astype(np.uint16), labels=None, gravity_camera=None)
+    assert stride_for(noise, config.frame.pixel_stride, config.frame.stride_reference_pixels) == 4
+    r = loc.localize(noise)
+    assert r.status.value != "ok"
+    assert r.diagnostics.frame_points <= (640 // 2) * (480 // 2)  # as many as a 640 x 480 image's at stride 2
+    assert described and described[-1] <= config.fallback.fpfh_max_points  # the frame's, after the map's own
+
+
+def test_the_sampling_stride_grows_with_the_image_and_names_itself_when_too_few_points_remain(scene) -> None:
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from cadreg.errors import InvalidFrame
+    from cadreg.localize import Localizer
+    from cadreg.localize.points import stride_for
+
+    frame = render_frame(scene, look_pose(np.array([3.1, 2.2, 1.45]), 0.0, np.radians(30.0)),
+                         intrinsics=CameraIntrinsics(160, 120, 144.0, 144.0, 79.5, 59.5))
+    shaped = lambda w, h: SimpleNamespace(depth=np.empty((h, w), np.uint16))  # noqa: E731  (its size is all it reads)
+    assert [stride_for(shaped(w, h), 2, 640 * 480) for w, h in ((160, 120), (640, 480), (1280, 720), (4096, 3072))] \
+        == [2, 2, 4, 13]
+    assert stride_for(shaped(1280, 960), 7, 640 * 480) == 14  # the tracking stride grows alike
+    sparse = np.zeros_like(frame.depth)
+    sparse[::16, ::16] = frame.depth[::16, ::16]  # 80 valid pixels, of which the sampling sees the even ones
+    with pytest.raises(InvalidFrame, match=r"only \d+ valid depth points .* \(one depth pixel in 2 along each row"):
+        Localizer.from_site(scene.site).localize(replace(frame, depth=sparse))

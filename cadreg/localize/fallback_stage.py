@@ -79,7 +79,7 @@ class FallbackStage:
         registrar = self._fpfh_in_reach(scan, rooms, notes)
         if registrar is None:
             return None
-        T, _ = registrar.register(scan.down.xyz)
+        T, _ = registrar.register(scan.down.xyz, max_points=fb.fpfh_max_points)
         if floor is not None:
             # FPFH + RANSAC knows nothing of gravity: on a bare wall it happily returns the camera upside down.
             tilt = np.degrees(np.arccos(np.clip((T[:3, :3] @ floor.up_camera) @ self.up, -1.0, 1.0)))
