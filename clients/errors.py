@@ -13,6 +13,8 @@
     │   ├── WorkerCrashed     worker_crashed      503 + Retry-After   retried
     │   ├── RequestTimeout    timeout             504                 never retried (the work may still be running)
     │   ├── Unauthorized      unauthorized        401
+    │   ├── BodyTimeout       body_timeout        408   the request body did not arrive in time
+    │   ├── ClientDisconnected client_disconnected 499  (logged and counted by the service; no client reads it)
     │   └── InternalError     internal            500
     ├── Unreachable        unreachable   no connection, connection dropped, or no zenoh queryable answered; retried
     ├── ClientTimeout      client_timeout the client's own read/query deadline passed (also a RequestTimeout); not retried
@@ -123,6 +125,14 @@ class Unauthorized(ServerError, wire.Unauthorized):
     code = "unauthorized"
 
 
+class BodyTimeout(ServerError, wire.BodyTimeout):
+    code = "body_timeout"
+
+
+class ClientDisconnected(ServerError, wire.ClientDisconnected):
+    code = "client_disconnected"
+
+
 class InternalError(ServerError, core.ServiceError):
     code = "internal"
 
@@ -149,7 +159,8 @@ ERRORS_BY_CODE: dict[str, type[ServerError]] = {
     cls.code: cls
     for cls in (
         InputError, InvalidFrame, InvalidFileError, BundleIntegrityError, ConfigError, UnknownSite,
-        PayloadTooLarge, Overloaded, WorkerCrashed, RequestTimeout, Unauthorized, InternalError,
+        PayloadTooLarge, Overloaded, WorkerCrashed, RequestTimeout, Unauthorized, BodyTimeout, ClientDisconnected,
+        InternalError,
     )
 }
 

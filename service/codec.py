@@ -73,6 +73,9 @@ def check_json_bounds(text: str | bytes | bytearray, what: str, max_bytes: int, 
                                detail={"limit_depth": max_depth})
 
 
+MAX_LISTED_ERRORS = 20  # validation errors an error body lists (`error_count` counts them all)
+
+
 def parse_meta(raw: str | bytes | dict[str, Any] | FrameMeta) -> FrameMeta:
     """Validate the meta document (JSON text or dict) into a FrameMeta; any problem raises InvalidFrame."""
     if isinstance(raw, FrameMeta):
@@ -87,7 +90,10 @@ def parse_meta(raw: str | bytes | dict[str, Any] | FrameMeta) -> FrameMeta:
     except ValidationError as exc:
         errors = [{"loc": [str(p) for p in e["loc"]], "msg": e["msg"], "type": e["type"]} for e in exc.errors()]
         first = errors[0]
-        raise InvalidFrame(f"meta.{'.'.join(first['loc'])}: {first['msg']}", detail={"errors": errors}) from None
+        # The first MAX_LISTED_ERRORS and their count: a meta of 5,400 unknown keys (under the 64 KiB cap) had an
+        # answer of 442 KB listing each.
+        raise InvalidFrame(f"meta.{'.'.join(first['loc'])}: {first['msg']}",
+                           detail={"errors": errors[:MAX_LISTED_ERRORS], "error_count": len(errors)}) from None
 
 
 # --- images -------------------------------------------------------------------------------------------------------
@@ -113,8 +119,14 @@ def _open_image(data: bytes, part: str, formats: tuple[str, ...]) -> Image.Image
     except InvalidFrame:
         raise
     except Exception as exc:  # Pillow raises a zoo of types (OSError, SyntaxError, ValueError...) for bad files
-        raise InvalidFrame(f"{part} is not a readable {'/'.join(formats)} image: {exc}") from None
+        raise InvalidFrame(f"{part} is not a readable {'/'.join(formats)} image: {_pillow_reason(exc)}") from None
     return img
+
+
+def _pillow_reason(exc: Exception) -> str:
+    """Pillow's reason for refusing an image, without the repr of our in-memory buffer it names ("cannot identify
+    image file <_io.BytesIO object at 0x7f...>": an address of the server's memory, and nothing the client sent)."""
+    return re.sub(r"\s*<_io\.BytesIO object at 0x[0-9a-fA-F]+>", "", str(exc)).strip() or type(exc).__name__
 
 
 _PART_FORMATS = {"color": ("PNG", "JPEG"), "depth": ("PNG",), "labels": ("PNG",)}
@@ -133,11 +145,12 @@ def check_image_sizes(parts: dict[str, bytes], max_pixels: int) -> None:
                 warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # the cap below is ours
                 with Image.open(io.BytesIO(data), formats=list(formats)) as img:
                     w, h = img.size
-        except Image.DecompressionBombError as exc:
-            raise InvalidFrame(f"{name} is over the {max_pixels}-pixel cap (max_frame_pixels): {exc}",
+        except Image.DecompressionBombError:
+            # (Pillow's own message names its own limit, not ours)
+            raise InvalidFrame(f"{name} is over the {max_pixels}-pixel cap (max_frame_pixels)",
                                detail={"part": name, "max_pixels": max_pixels}) from None
         except Exception as exc:  # Pillow raises a zoo of types for bad files
-            raise InvalidFrame(f"{name} is not a readable {'/'.join(formats)} image: {exc}") from None
+            raise InvalidFrame(f"{name} is not a readable {'/'.join(formats)} image: {_pillow_reason(exc)}") from None
         if w * h > max_pixels:
             raise InvalidFrame(f"{name} is {w}x{h} = {w * h} pixels, over the {max_pixels}-pixel cap (max_frame_pixels)",
                                detail={"part": name, "width": w, "height": h, "max_pixels": max_pixels})

@@ -33,6 +33,19 @@ class Unauthorized(ServiceError):
     code = "unauthorized"
 
 
+class BodyTimeout(InputError):
+    """A request body did not arrive whole within `http_body_timeout_s` of its headers (a slow or stalled upload)."""
+
+    code = "body_timeout"
+
+
+class ClientDisconnected(InputError):
+    """The client closed its connection before its request body was whole. Nobody receives the answer: the code is
+    what the request log and the metrics count it as (not a server error)."""
+
+    code = "client_disconnected"
+
+
 @dataclass(frozen=True)
 class ErrorSpec:
     status: int
@@ -54,6 +67,8 @@ ERROR_TABLE: dict[type[CadregError], ErrorSpec] = {
     WorkerCrashed: ErrorSpec(503, "worker_crashed", retry_after=True),
     RequestTimeout: ErrorSpec(504, "timeout"),
     Unauthorized: ErrorSpec(401, "unauthorized"),
+    BodyTimeout: ErrorSpec(408, "body_timeout"),
+    ClientDisconnected: ErrorSpec(499, "client_disconnected"),  # nginx's status for it; no client reads it
     ServiceError: ErrorSpec(500, "internal"),
     CadregError: ErrorSpec(500, "internal"),
 }

@@ -35,13 +35,14 @@ from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.formparsers import MultiPartException, MultiPartParser
+from starlette.requests import ClientDisconnect
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from cadreg import __version__
-from cadreg.errors import CadregError, InputError, InvalidFrame, PayloadTooLarge
+from cadreg.errors import CadregError, InputError, InvalidFrame, Overloaded, PayloadTooLarge
 
-from .codec import PART_NAMES, encode_result
-from .errors import Unauthorized, error_body, http_headers, spec_for
+from .codec import MAX_LISTED_ERRORS, PART_NAMES, encode_result
+from .errors import BodyTimeout, ClientDisconnected, Unauthorized, error_body, http_headers, spec_for
 from .logs import log_event
 from .registry import check_site_id
 from .runtime import Service
@@ -113,22 +114,68 @@ def _refuse_declared_length(request: Request, limit: int, what: str) -> None:
         raise PayloadTooLarge(f"{what} of {n} bytes is over the {limit}-byte limit", detail={"limit_bytes": limit})
 
 
-async def _read_body(request: Request, limit: int) -> bytes:
-    """The request body, refusing (413) anything over `limit` bytes before it is decoded."""
+class BodyBudget:
+    """The bytes of request bodies held in memory at once, over every connection (`http_max_buffered_bytes`). A
+    body's bytes are taken as they arrive and given back when its request ends; a chunk that would pass the budget
+    is refused (503 `overloaded`, the connection closed). Without it eight connections that each sent 30 MB and
+    then waited held 240 MB, and more connections more. One event loop reads every body: no lock."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.held = 0
+
+    def take(self, request: Request, n: int) -> None:
+        if self.held + n > self.limit:
+            request.state.close_connection = True
+            raise Overloaded(f"request bodies in memory would pass the {self.limit}-byte budget "
+                             "(http_max_buffered_bytes)", detail={"limit_bytes": self.limit})
+        self.held += n
+        request.state.body_bytes_held = getattr(request.state, "body_bytes_held", 0) + n
+
+    def give_back(self, request: Request) -> None:
+        self.held -= getattr(request.state, "body_bytes_held", 0)
+        request.state.body_bytes_held = 0
+
+
+def _refuse_long_headers(request: Request, limit: int) -> None:
+    """413, and the connection closed, when the request line and headers pass `limit` bytes. uvicorn's h11 checks
+    its limit only while the headers are still incomplete: headers of 17-100 KB that arrived in one read went
+    through (`http_max_header_bytes`)."""
+    size = len(request.scope.get("raw_path") or b"") + sum(len(k) + len(v) + 4 for k, v in request.scope["headers"])
+    if size > limit:
+        request.state.close_connection = True
+        raise PayloadTooLarge(f"request headers of {size} bytes are over the {limit}-byte limit "
+                              "(http_max_header_bytes)", detail={"limit_bytes": limit})
+
+
+async def _read_body(request: Request, limit: int, budget: BodyBudget, timeout_s: float) -> bytes:
+    """The request body, refusing (413) anything over `limit` bytes before it is decoded, one that has not arrived
+    whole `timeout_s` after its headers (408 `body_timeout`: a stalled or trickled upload held its connection and
+    its bytes for as long as the client liked), and any chunk past the shared `budget`. A client that disconnects
+    mid-body is `client_disconnected`, not a server error. The caller gives the budget back (`give_back`)."""
     _refuse_declared_length(request, limit, "request body")
     too_large: int | None = None
     chunks: list[bytes] = []
     total = 0
-    async for chunk in request.stream():
-        total += len(chunk)
-        if too_large is None and total > limit:
-            too_large = total
-        if too_large is not None:
-            chunks.clear()
-            if total > _DRAIN_FACTOR * limit:
-                break
-            continue
-        chunks.append(chunk)
+    try:
+        async with asyncio.timeout(timeout_s):
+            async for chunk in request.stream():
+                total += len(chunk)
+                if too_large is None and total > limit:
+                    too_large = total
+                if too_large is not None:
+                    chunks.clear()
+                    if total > _DRAIN_FACTOR * limit:
+                        break
+                    continue
+                budget.take(request, len(chunk))
+                chunks.append(chunk)
+    except TimeoutError:
+        request.state.close_connection = True
+        raise BodyTimeout(f"the request body was not whole {timeout_s:g} s after its headers ({total} bytes "
+                          "arrived; http_body_timeout_s)", detail={"timeout_s": timeout_s, "bytes": total}) from None
+    except ClientDisconnect:
+        raise ClientDisconnected(f"the client closed the connection after {total} bytes of its body") from None
     if too_large is not None:
         raise PayloadTooLarge(f"request body of {too_large}+ bytes is over the {limit}-byte limit",
                               detail={"limit_bytes": limit})
@@ -205,6 +252,7 @@ def create_app(settings: Settings, service: Service | None = None, zenoh_server:
     )
     app.state.service = service
     app.state.zenoh = None
+    bodies = BodyBudget(settings.http_max_buffered_bytes)
 
     @app.middleware("http")
     async def request_context(request: Request, call_next):
@@ -214,7 +262,10 @@ def create_app(settings: Settings, service: Service | None = None, zenoh_server:
         request.state.error_code = None
         t0 = time.perf_counter()
         try:
+            _refuse_long_headers(request, settings.http_max_header_bytes)
             response = await call_next(request)
+        except CadregError as exc:  # refused here, before any route ran
+            response = _error_response(exc, request)
         except Exception as exc:  # anything not handled below: one 500 body, no traceback to the client
             # one JSON line, traceback included: the exception's text may carry request input
             log_event(log, "http_request_failed", logging.ERROR, request_id=request_id, path=request.url.path,
@@ -241,7 +292,8 @@ def create_app(settings: Settings, service: Service | None = None, zenoh_server:
     @app.exception_handler(RequestValidationError)
     async def validation_error(request: Request, exc: RequestValidationError) -> Response:
         errors = [{"loc": [str(p) for p in e.get("loc", ())], "msg": str(e.get("msg"))} for e in exc.errors()]
-        return _error_response(InputError("invalid request", detail={"errors": errors}), request)
+        return _error_response(InputError("invalid request", detail={"errors": errors[:MAX_LISTED_ERRORS],
+                                                                     "error_count": len(errors)}), request)
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> Response:
@@ -269,9 +321,13 @@ def create_app(settings: Settings, service: Service | None = None, zenoh_server:
     )
     async def localize(site_id: str, request: Request) -> Response:
         service.registry.get(site_id)  # 404 before reading a body for nothing
-        body = await _read_body(request, settings.max_upload_bytes)
-        parts, meta = await _parse_multipart(request, body)
-        future = service.submit(site_id, parts, meta)
+        try:
+            body = await _read_body(request, settings.max_upload_bytes, bodies, settings.http_body_timeout_s)
+            parts, meta = await _parse_multipart(request, body)
+            del body  # the parts are what stays
+            future = service.submit(site_id, parts, meta)
+        finally:
+            bodies.give_back(request)
         job = await asyncio.wrap_future(future)
         return _JSON(service.finish(job, site_id, request.state.request_id))
 
@@ -281,7 +337,7 @@ def create_app(settings: Settings, service: Service | None = None, zenoh_server:
     async def list_sites() -> dict[str, Any]:
         return {"sites": [e.summary() for e in service.registry.entries()]}
 
-    @app.get("/v1/sites/{site_id}", response_model=SiteInfo, responses=_error_responses(404),
+    @app.get("/v1/sites/{site_id}", response_model=SiteInfo, responses=_error_responses(404, 422),
              summary="One site: version, graph and map sizes, classes")
     async def site_info(site_id: str) -> dict[str, Any]:
         return service.registry.get(site_id).info()

@@ -37,6 +37,13 @@ class Intrinsics(_Wire):
     cy: WireFloat = Field(description="principal point y, pixels (pixel-centre convention)")
 
 
+# The farthest a map coordinate the wire takes may lie from the map's origin, metres: beyond any building, and
+# far inside what the localizer's arithmetic handles (a search centre of 1e300 m overflowed in its grid cells).
+MAX_COORDINATE_M = 1e6
+# A map coordinate: [x, y, z] of a search region's centre.
+Coordinate = Annotated[float, Strict(), Field(ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)]
+
+
 def _check_matrix4(value: list[list[float]] | None) -> list[list[float]] | None:
     if value is None:
         return None
@@ -44,6 +51,8 @@ def _check_matrix4(value: list[list[float]] | None) -> list[list[float]] | None:
         raise ValueError("must be a 4x4 matrix (4 rows of 4 numbers)")
     if not all(math.isfinite(x) for row in value for x in row):
         raise ValueError("must hold finite numbers only")
+    if any(abs(value[i][3]) > MAX_COORDINATE_M for i in range(3)):
+        raise ValueError(f"its translation must lie within {MAX_COORDINATE_M:g} m of the origin")
     return value
 
 
@@ -52,7 +61,8 @@ class SearchRegionIn(_Wire):
     of site regions (`GET /v1/sites/{site_id}` lists them). Hypotheses whose camera lies elsewhere (outside the ball,
     or the regions' boxes grown by `site.regions.CAMERA_MARGIN_M`) are not considered."""
 
-    center: list[WireFloat] | None = Field(None, min_length=3, max_length=3, description="[x, y, z], map frame, metres")
+    center: list[Coordinate] | None = Field(None, min_length=3, max_length=3,
+                                            description="[x, y, z], map frame, metres (each within 1e6 m)")
     radius_m: WireFloat | None = Field(None, gt=0, le=100_000, description="radius of the ball, metres")
     region_ids: list[Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9._-]+$")]] | None = Field(
         None, min_length=1, max_length=MAX_SEARCH_REGIONS, description="region ids of the site")

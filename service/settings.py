@@ -60,6 +60,11 @@ class Settings(BaseSettings):
     http_header_timeout_s: float = Field(10.0, gt=0, le=600, description="a connection whose request headers are "
                                          "not complete this long after it opened (or after its last answer) is closed")
     http_keep_alive_s: float = Field(5.0, gt=0, le=600, description="an idle keep-alive connection is closed after this")
+    http_body_timeout_s: float = Field(30.0, gt=0, le=3600, description="a localize request body not whole this "
+                                       "long after its headers -> 408 body_timeout, and the connection closes")
+    http_max_buffered_bytes: int = Field(256 * 1024 * 1024, ge=1024, description="localize request bodies held in "
+                                         "memory at once over all connections; a chunk past it -> 503 overloaded, "
+                                         "and the connection closes")
     http_max_header_bytes: int = Field(16 * 1024, ge=1024, le=1024 * 1024,
                                        description="largest request line + headers; more -> 400 and the connection closes")
     admin_token: SecretStr | None = Field(None, description="bearer token of the admin routes; None = admin routes refuse")
@@ -127,6 +132,13 @@ class Settings(BaseSettings):
     def _zenoh_reachable(self) -> "Settings":
         if self.zenoh_enabled and self.zenoh_mode == "client" and not self.zenoh_connect:
             raise ValueError("zenoh_mode 'client' needs zenoh_connect endpoints (a router to talk to)")
+        return self
+
+    @model_validator(mode="after")
+    def _one_body_fits_the_budget(self) -> "Settings":
+        if self.http_max_buffered_bytes < self.max_upload_bytes:
+            raise ValueError(f"http_max_buffered_bytes ({self.http_max_buffered_bytes}) must hold one body of "
+                             f"max_upload_bytes ({self.max_upload_bytes})")
         return self
 
     @property

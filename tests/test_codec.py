@@ -206,7 +206,8 @@ def test_error_table_is_total_and_consistent() -> None:
     expected = {
         "invalid_frame": 422, "invalid_input": 422, "invalid_file": 422, "invalid_config": 422,
         "bundle_integrity": 422, "unknown_site": 404, "payload_too_large": 413, "overloaded": 503,
-        "worker_crashed": 503, "timeout": 504, "unauthorized": 401, "internal": 500,
+        "worker_crashed": 503, "timeout": 504, "unauthorized": 401, "body_timeout": 408, "client_disconnected": 499,
+        "internal": 500,
     }
     for cls in classes:
         spec = wire_errors.spec_for(cls)
@@ -291,6 +292,36 @@ def test_image_sizes_are_checked_from_headers_only() -> None:
             + chunk(b"IDAT", zlib.compress(b"")) + chunk(b"IEND", b""))
     with pytest.raises(InvalidFrame, match="over the 1000000-pixel cap"):
         codec.check_image_sizes({"depth": bomb}, 10**6)
+
+
+def test_an_unreadable_image_is_named_without_the_servers_memory_or_pillows_own_limit() -> None:
+    for check in (lambda data: codec.check_image_sizes({"depth": data}, 10**6),
+                  lambda data: codec.decode_frame({"color": data, "depth": data}, {"depth_intrinsics": {
+                      "fx": 500.0, "fy": 500.0, "cx": 32.0, "cy": 24.0}})):
+        with pytest.raises(InvalidFrame) as info:
+            check(b"garbage, no image" * 4)
+        assert "not a readable" in str(info.value) and "BytesIO" not in str(info.value) and "0x" not in str(info.value)
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    # past Pillow's own bomb limit (2 x 89 M pixels): our cap named alone, not Pillow's 178956970
+    huge = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 20000, 20000, 16, 0, 0, 0, 0)) + chunk(b"IEND", b"")
+    with pytest.raises(InvalidFrame) as info:
+        codec.check_image_sizes({"depth": huge}, 10**6)
+    assert str(info.value) == "depth is over the 1000000-pixel cap (max_frame_pixels)"
+
+
+def test_a_search_centre_or_a_translation_far_off_any_map_is_refused_and_errors_are_listed_up_to_a_cap() -> None:
+    base = {"depth_intrinsics": {"fx": 500.0, "fy": 500.0, "cx": 320.0, "cy": 240.0}}
+    with pytest.raises(InvalidFrame, match=r"meta.search_region.center.0: Input should be less than or equal to 1000000"):
+        codec.parse_meta({**base, "search_region": {"center": [1e300, 0.0, 0.0], "radius_m": 1.0}})
+    far = [[1.0, 0.0, 0.0, 2e6], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+    with pytest.raises(InvalidFrame, match="within 1e\\+06 m of the origin"):
+        codec.parse_meta({**base, "pose_prior": far})
+    assert codec.parse_meta({**base, "search_region": {"center": [1e5, -1e5, 3.0], "radius_m": 5.0}})
+    with pytest.raises(InvalidFrame) as info:
+        codec.parse_meta({**base, **{f"unknown_{i}": i for i in range(100)}})
+    assert len(info.value.detail["errors"]) == codec.MAX_LISTED_ERRORS and info.value.detail["error_count"] == 100
 
 
 def test_frame_meta_numbers_are_strict_and_top_k_optional() -> None:

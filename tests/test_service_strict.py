@@ -25,6 +25,8 @@ TOKEN = "strict-token"
 UPLOAD_LIMIT = 4 * 1024 * 1024
 HEADER_TIMEOUT_S = 1.0
 MAX_HEADER_BYTES = 4096
+BODY_TIMEOUT_S = 2.0
+BUFFERED_LIMIT = 2 * UPLOAD_LIMIT
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +39,8 @@ def server(scene0470_site_dir: Path):
     settings = Settings(sites_dir=scene0470_site_dir.parent, port=free_port(), workers=1, queue_depth=2,
                         request_timeout_s=20.0, max_upload_bytes=UPLOAD_LIMIT, admin_token=TOKEN,
                         zenoh_enabled=False, http_header_timeout_s=HEADER_TIMEOUT_S,
-                        http_max_header_bytes=MAX_HEADER_BYTES)
+                        http_max_header_bytes=MAX_HEADER_BYTES, http_body_timeout_s=BODY_TIMEOUT_S,
+                        http_max_buffered_bytes=BUFFERED_LIMIT)
     live = LiveServer(settings, as_served=True)
     yield live
     live.stop()
@@ -248,6 +251,80 @@ def test_headers_over_the_limit_are_400(server) -> None:
             more, _ = _read_until_closed(sock, 3.0)
             data += more
     assert data.startswith(b"HTTP/1.1 400"), data[:200]
+
+
+def test_headers_over_the_limit_in_one_read_are_413_and_the_connection_closes(server) -> None:
+    # h11 checks its limit only while the head is incomplete: a whole head in one read went through (200)
+    with _connect(server) as sock:
+        sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Big: " + b"a" * (3 * MAX_HEADER_BYTES) + b"\r\n\r\n")
+        data, closed = _read_until_closed(sock, 3.0)
+    assert data.startswith(b"HTTP/1.1 413") and b'"code":"payload_too_large"' in data, data[:300]
+    assert b"http_max_header_bytes" in data and closed
+
+
+# --- a body that never comes, bodies held at once, a client that leaves (a second hostile client) ---------------
+
+def test_a_body_that_stalls_is_408_after_the_body_timeout(server) -> None:
+    with _connect(server) as sock:
+        sock.sendall(_head("POST", f"/v1/sites/{SITE}/localize", 1_000_000) + b"x" * 1000)
+        t0 = time.monotonic()
+        data, closed = _read_until_closed(sock, BODY_TIMEOUT_S + 4.0)
+    assert data.startswith(b"HTTP/1.1 408") and b'"code":"body_timeout"' in data, data[:300]
+    assert closed and BODY_TIMEOUT_S - 0.2 <= time.monotonic() - t0 < BODY_TIMEOUT_S + 4.0
+
+
+def test_bodies_held_at_once_are_bounded_and_given_back(server, client, frames) -> None:
+    """Three connections that each send 3 MiB of a 3.5 MiB body and wait: the first two fit the 8 MiB budget, the
+    third is refused (503 `overloaded`, its connection closed: a reset may lose the answer it was sent, so the
+    metrics count it); the first two end at the body timeout; the budget is whole again."""
+    part = 3 * 1024 * 1024
+    overloaded_before = _localize_count(client, "overloaded")
+    socks = []
+    try:
+        for _ in range(2):  # each connected when it sends: the header timeout (1 s here) runs from the connection
+            socks.append(_connect(server))
+            socks[-1].sendall(_head("POST", f"/v1/sites/{SITE}/localize", part + part // 6) + b"x" * part)
+            assert _read_until_closed(socks[-1], 0.5) == (b"", False)
+        socks.append(_connect(server))
+        try:
+            socks[2].sendall(_head("POST", f"/v1/sites/{SITE}/localize", part + part // 6) + b"x" * part)
+        except (BrokenPipeError, ConnectionResetError):
+            pass  # closed while we still sent
+        third, closed = _read_until_closed(socks[2], 3.0)
+        assert closed and (third == b"" or third.startswith(b"HTTP/1.1 503")), third[:300]
+        assert _localize_count(client, "overloaded") == overloaded_before + 1
+        for sock in socks[:2]:
+            data, _ = _read_until_closed(sock, BODY_TIMEOUT_S + 4.0)
+            assert data.startswith(b"HTTP/1.1 408"), data[:200]
+    finally:
+        for sock in socks:
+            sock.close()
+    assert _post(client, *multipart(frames[0][0])).status_code == 200
+
+
+def _localize_count(client, code: str) -> float:
+    """cadreg_requests_total of the localize route with this code, over HTTP."""
+    return sum(float(line.rsplit(" ", 1)[1]) for line in client.get("/metrics").text.splitlines()
+               if line.startswith("cadreg_requests_total{") and f'code="{code}"' in line and "localize" in line)
+
+
+def test_a_client_that_leaves_mid_body_is_counted_as_such_not_as_a_server_error(server, client) -> None:
+    left, internal = _localize_count(client, "client_disconnected"), _localize_count(client, "internal")
+    with _connect(server) as sock:
+        sock.sendall(_head("POST", f"/v1/sites/{SITE}/localize", 1_000_000) + b"x" * 1000)
+        time.sleep(0.3)
+    deadline = time.monotonic() + 10.0
+    while _localize_count(client, "client_disconnected") == left and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert _localize_count(client, "client_disconnected") == left + 1
+    assert _localize_count(client, "internal") == internal
+
+
+def test_the_site_routes_422_is_the_error_body_in_the_openapi_document(client) -> None:
+    responses = client.get("/openapi.json").json()["paths"]["/v1/sites/{site_id}"]["get"]["responses"]
+    assert responses["422"]["content"]["application/json"]["schema"]["$ref"].endswith("/ErrorBody")
+    body = _error(client.get("/v1/sites/bad%20id"), 422, "invalid_input")
+    assert set(body) == {"code", "message", "request_id", "detail"}
 
 
 def test_a_client_answered_keeps_a_usable_server(client, frames) -> None:
