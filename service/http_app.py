@@ -34,7 +34,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException as StarletteHTTPException
-from starlette.formparsers import MultiPartException, MultiPartParser
+from starlette.formparsers import MultiPartException, MultiPartParser, parse_options_header
 from starlette.requests import ClientDisconnect
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
@@ -186,6 +186,11 @@ async def _parse_multipart(request: Request, body: bytes) -> tuple[dict[str, byt
     content_type = request.headers.get("content-type", "")
     if not content_type.startswith("multipart/form-data"):
         raise InvalidFrame(f"expected multipart/form-data, got {content_type or 'no content type'!r}")
+
+    boundary = parse_options_header(content_type)[1].get(b"boundary")
+    if boundary and b"--" + boundary + b"--" not in body:
+        # The parser takes a body cut short for one whose last parts are missing ("missing part: meta").
+        raise InvalidFrame("malformed multipart body: it has no closing boundary (cut short?)")
 
     async def once() -> AsyncIterator[bytes]:
         yield body

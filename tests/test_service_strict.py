@@ -327,6 +327,15 @@ def test_the_site_routes_422_is_the_error_body_in_the_openapi_document(client) -
     assert set(body) == {"code", "message", "request_id", "detail"}
 
 
+def test_a_body_cut_short_is_named_so_not_as_a_missing_part(client, frames) -> None:
+    files, data = multipart(frames[0][0])
+    whole = client.build_request("POST", f"/v1/sites/{SITE}/localize", files=files, data=data)
+    body = whole.read()
+    r = client.post(f"/v1/sites/{SITE}/localize", content=body[: body.rindex(b"--\r\n")],  # the closing "--" gone
+                    headers={"content-type": whole.headers["content-type"]})
+    assert "no closing boundary" in _error(r, 422, "invalid_frame")["message"]
+
+
 def test_a_client_answered_keeps_a_usable_server(client, frames) -> None:
     assert client.get("/healthz").status_code == 200
     assert _post(client, *multipart(frames[0][0])).status_code == 200
