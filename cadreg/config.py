@@ -330,9 +330,10 @@ class FallbackConfig(_Section):
 
     enabled: bool = True
     voxel_size_m: float = Field(0.05, gt=0, description="FPFH + RANSAC resolution")
-    fpfh_max_points: int = Field(2000, ge=100, description="the last resort describes and matches at most this many "
-                                 "of the frame's voxels (a seeded random subset): a frame of surfaces has 1-2 k at 5 cm, "
-                                 "a depth image of noise 60-180 k, which took 5-21 s (now 0.2 s)")
+    fpfh_max_points: int = Field(12000, ge=100, description="the last resort describes and matches the frame on "
+                                 "voxel_size_m voxels, or on the coarser ones that leave at most this many: real frames "
+                                 "have 2-11 k (RedKitchen, 3DMatch), a depth image of noise 60-180 k, which took 5-21 s "
+                                 "(0.6 s so)")
     grid_step_m: float = Field(0.2, gt=0, description="position step of `fallback.floor_grid_search` (kept for "
                                "callers; the localizer's label-free stage is LabelFreeConfig's search)")
     yaw_step_deg: float = Field(10.0, gt=0, le=90, description="yaw step of `fallback.floor_grid_search`")

@@ -116,9 +116,10 @@ def _refuse_declared_length(request: Request, limit: int, what: str) -> None:
 
 class BodyBudget:
     """The bytes of request bodies held in memory at once, over every connection (`http_max_buffered_bytes`). A
-    body's bytes are taken as they arrive and given back when its request ends; a chunk that would pass the budget
-    is refused (503 `overloaded`, the connection closed). Without it eight connections that each sent 30 MB and
-    then waited held 240 MB, and more connections more. One event loop reads every body: no lock."""
+    body's bytes are taken as they arrive and given back once its parts are in the pool's queue (whose depth bounds
+    what waits there) or it is refused; a chunk that would pass the budget is refused (503 `overloaded`, the
+    connection closed). Without it eight connections that each sent 30 MB and then waited held 240 MB, and more
+    connections more. One event loop reads every body: no lock."""
 
     def __init__(self, limit: int) -> None:
         self.limit = limit
@@ -139,9 +140,12 @@ class BodyBudget:
 
 def _refuse_long_headers(request: Request, limit: int) -> None:
     """413, and the connection closed, when the request line and headers pass `limit` bytes. uvicorn's h11 checks
-    its limit only while the headers are still incomplete: headers of 17-100 KB that arrived in one read went
-    through (`http_max_header_bytes`)."""
-    size = len(request.scope.get("raw_path") or b"") + sum(len(k) + len(v) + 4 for k, v in request.scope["headers"])
+    its limit only while the head is still incomplete (400 then): a head of 17-100 KB that arrived in one read went
+    through (`http_max_header_bytes`). Here, and not in `GuardedH11Protocol`, since the app is the first to see a
+    whole head; the query string counts (uvicorn's raw_path leaves it out)."""
+    scope = request.scope
+    line = len(scope["method"]) + len(scope.get("raw_path") or b"") + 1 + len(scope.get("query_string") or b"") + 11
+    size = line + sum(len(k) + len(v) + 4 for k, v in scope["headers"])  # "name: value\r\n" each
     if size > limit:
         request.state.close_connection = True
         raise PayloadTooLarge(f"request headers of {size} bytes are over the {limit}-byte limit "
@@ -152,7 +156,7 @@ async def _read_body(request: Request, limit: int, budget: BodyBudget, timeout_s
     """The request body, refusing (413) anything over `limit` bytes before it is decoded, one that has not arrived
     whole `timeout_s` after its headers (408 `body_timeout`: a stalled or trickled upload held its connection and
     its bytes for as long as the client liked), and any chunk past the shared `budget`. A client that disconnects
-    mid-body is `client_disconnected`, not a server error. The caller gives the budget back (`give_back`)."""
+    mid-body is `client_disconnected` (`create_app`'s handler). The caller gives the budget back (`give_back`)."""
     _refuse_declared_length(request, limit, "request body")
     too_large: int | None = None
     chunks: list[bytes] = []
@@ -163,6 +167,7 @@ async def _read_body(request: Request, limit: int, budget: BodyBudget, timeout_s
                 total += len(chunk)
                 if too_large is None and total > limit:
                     too_large = total
+                    budget.give_back(request)  # what it held is dropped: the rest is drained, not kept
                 if too_large is not None:
                     chunks.clear()
                     if total > _DRAIN_FACTOR * limit:
@@ -174,8 +179,6 @@ async def _read_body(request: Request, limit: int, budget: BodyBudget, timeout_s
         request.state.close_connection = True
         raise BodyTimeout(f"the request body was not whole {timeout_s:g} s after its headers ({total} bytes "
                           "arrived; http_body_timeout_s)", detail={"timeout_s": timeout_s, "bytes": total}) from None
-    except ClientDisconnect:
-        raise ClientDisconnected(f"the client closed the connection after {total} bytes of its body") from None
     if too_large is not None:
         raise PayloadTooLarge(f"request body of {too_large}+ bytes is over the {limit}-byte limit",
                               detail={"limit_bytes": limit})
@@ -293,6 +296,13 @@ def create_app(settings: Settings, service: Service | None = None, zenoh_server:
     @app.exception_handler(CadregError)
     async def cadreg_error(request: Request, exc: CadregError) -> Response:
         return _error_response(exc, request)
+
+    @app.exception_handler(ClientDisconnect)
+    async def client_left(request: Request, exc: ClientDisconnect) -> Response:
+        # Any route that reads a body (a frame, an admin's archive): the client is gone, nobody reads the answer,
+        # and it is no server error (it was a 500 with a traceback in the log).
+        return _error_response(ClientDisconnected("the client closed the connection before its body was whole"),
+                               request)
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(request: Request, exc: RequestValidationError) -> Response:

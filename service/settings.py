@@ -66,7 +66,8 @@ class Settings(BaseSettings):
                                          "memory at once over all connections; a chunk past it -> 503 overloaded, "
                                          "and the connection closes")
     http_max_header_bytes: int = Field(16 * 1024, ge=1024, le=1024 * 1024,
-                                       description="largest request line + headers; more -> 400 and the connection closes")
+                                       description="largest request line + headers; more -> 400 (413 when they "
+                                       "arrived in one read) and the connection closes")
     admin_token: SecretStr | None = Field(None, description="bearer token of the admin routes; None = admin routes refuse")
     zenoh_enabled: bool = True
     zenoh_mode: Literal["peer", "client", "router"] = "peer"

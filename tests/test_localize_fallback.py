@@ -142,7 +142,8 @@ def test_each_kept_leaf_has_its_best_same_place_alternate_verified_too() -> None
 def test_a_depth_image_of_noise_is_sampled_and_described_within_bounds(scene, monkeypatch) -> None:
     """A hostile client's depth image of noise fills its whole frustum with points: the search samples a large
     image no denser than a 640 x 480 one (`points.stride_for`), and the last resort describes at most
-    FallbackConfig.fpfh_max_points of its voxels (one of 640 x 480 noise took 5.4 s, one of 1280 x 960 over 20 s)."""
+    FallbackConfig.fpfh_max_points of its voxels (one of 640 x 480 noise took 5.4 s, one of 1280 x 960 over 20 s),
+    on a grid coarse enough, and a frame of surfaces on its 5 cm grid whole."""
     from dataclasses import replace
 
     from cadreg.config import LocalizeConfig
@@ -163,6 +164,12 @@ def test_a_depth_image_of_noise_is_sampled_and_described_within_bounds(scene, mo
     assert r.status.value != "ok"
     assert r.diagnostics.frame_points <= (640 // 2) * (480 // 2)  # as many as a 640 x 480 image's at stride 2
     assert described and described[-1] <= config.fallback.fpfh_max_points  # the frame's, after the map's own
+    surfaces = voxel_downsample(frame_to_points(render_frame(scene, look_pose(np.array([3.1, 2.2, 1.45]), 0.0,
+                                                                              np.radians(30.0)))), 0.03).xyz
+    whole = len(voxel_downsample(frame_to_points(render_frame(scene, look_pose(np.array([3.1, 2.2, 1.45]), 0.0,
+                                                                               np.radians(30.0)))), 0.05))
+    loc.fpfh().register(surfaces, max_points=config.fallback.fpfh_max_points, max_iterations=1000)
+    assert abs(described[-1] - whole) <= 0.05 * whole  # under the bound: its 5 cm voxels, none left out
 
 
 def test_the_sampling_stride_grows_with_the_image_and_names_itself_when_too_few_points_remain(scene) -> None:
@@ -176,8 +183,8 @@ def test_the_sampling_stride_grows_with_the_image_and_names_itself_when_too_few_
     frame = render_frame(scene, look_pose(np.array([3.1, 2.2, 1.45]), 0.0, np.radians(30.0)),
                          intrinsics=CameraIntrinsics(160, 120, 144.0, 144.0, 79.5, 59.5))
     shaped = lambda w, h: SimpleNamespace(depth=np.empty((h, w), np.uint16))  # noqa: E731  (its size is all it reads)
-    assert [stride_for(shaped(w, h), 2, 640 * 480) for w, h in ((160, 120), (640, 480), (1280, 720), (4096, 3072))] \
-        == [2, 2, 4, 13]
+    sizes = ((160, 120), (640, 480), (848, 480), (640, 576), (1280, 720), (1280, 960), (4096, 3072))
+    assert [stride_for(shaped(w, h), 2, 640 * 480) for w, h in sizes] == [2, 2, 2, 2, 3, 4, 13]
     assert stride_for(shaped(1280, 960), 7, 640 * 480) == 14  # the tracking stride grows alike
     sparse = np.zeros_like(frame.depth)
     sparse[::16, ::16] = frame.depth[::16, ::16]  # 80 valid pixels, of which the sampling sees the even ones

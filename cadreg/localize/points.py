@@ -53,9 +53,9 @@ def stride_for(frame: Frame, pixel_stride: int, reference_pixels: int) -> int:
     larger image of surfaces sampled so keeps as many points per square metre within a few metres as a 640 x 480
     one does at stride 2, and so the same 3 cm voxels."""
     pixels = frame.depth.shape[0] * frame.depth.shape[1]
-    if pixels <= reference_pixels:
-        return pixel_stride
-    return int(np.ceil(pixel_stride * np.sqrt(pixels / reference_pixels)))
+    # The nearest stride, not the next one up: an 848 x 480 or 640 x 576 sensor keeps stride 2 (at 3 it kept half
+    # the points of a 640 x 480 frame); at most (2.5 / 2)² = 1.56 times a reference image's points.
+    return max(pixel_stride, int(round(pixel_stride * np.sqrt(pixels / reference_pixels))))
 
 
 def too_few_points(count: int, stride: int, min_depth_m: float, max_depth_m: float) -> str:
