@@ -363,7 +363,9 @@ class ZenohServer:
             exc = UnknownSite(f"unknown site {key.site_id!r}", detail={"site_id": key.site_id})
             self._publish_refusal(key.site_id, key.device_id, exc, t0)
             return
-        self._enqueue_frame(key.site_id, key.device_id, sample.payload.to_bytes(), t0)
+        refusal = self._enqueue_frame(key.site_id, key.device_id, sample.payload.to_bytes(), t0)
+        if refusal is not None:  # answered, so that the device backs off rather than waits for a pose
+            self._publish_refusal(key.site_id, key.device_id, refusal, t0)
 
     def _publish_refusal(self, site_id: str, device_id: str, exc: CadregError, t0: float) -> None:
         """Answer a frame refused on arrival on its poses key, from this thread (no state, nothing queued)."""
@@ -372,13 +374,17 @@ class ZenohServer:
         self.session.put(wire.poses_key(site_id, device_id), encode_result(body), encoding=wire.ERROR_ENCODING)
         self._log("stream", request_id, body["code"], t0, site_id=site_id, device_id=device_id, frame_id=None)
 
-    def _enqueue_frame(self, site_id: str, device_id: str, payload: bytes, t0: float) -> None:
+    def _enqueue_frame(self, site_id: str, device_id: str, payload: bytes, t0: float) -> Overloaded | None:
+        """Queue a stream frame for the pool; the error to answer it with when it is refused for want of room (the
+        device cap, the pending bytes' budget: before the forty-first session such a frame got no answer at all, and
+        a device waited for a pose that never came), None otherwise (a frame refused at shutdown is not answered)."""
         metrics = self.service.metrics
         now = time.monotonic()
+        retry_after_s = self.settings.retry_after_s
         with self._cond:
             if self._stopping:
                 metrics.zenoh_refused.labels("shutting_down").inc()
-                return
+                return None
             self._prune(now)
             device = self._devices.get((site_id, device_id))
             if device is None:
@@ -388,7 +394,9 @@ class ZenohServer:
                     elif not self._make_room_for(site_id, device_id):
                         # every device has work: the new one waits its turn outside
                         metrics.zenoh_refused.labels("device_cap").inc()
-                        return
+                        cap = self.settings.stream_max_devices
+                        return Overloaded(f"every one of the {cap} stream devices the service tracks "
+                                          "(stream_max_devices) has work", retry_after_s=retry_after_s)
                 device = self._devices[(site_id, device_id)] = _Device(site_id, device_id)
             full = len(device.frames) >= self.settings.stream_queue_per_device
             freed = len(device.frames[0][0]) if full else 0
@@ -396,7 +404,9 @@ class ZenohServer:
                 metrics.zenoh_refused.labels("stream_budget").inc()
                 if device.idle:
                     self._set_idle(device, now)
-                return
+                budget = self.settings.stream_max_pending_bytes
+                return Overloaded(f"stream frames waiting for the pool would pass {budget} bytes "
+                                  "(stream_max_pending_bytes)", retry_after_s=retry_after_s)
             if full:
                 device.frames.popleft()  # the device outruns the pool: the oldest frame is the least useful
                 self._pending_bytes -= freed
@@ -406,6 +416,7 @@ class ZenohServer:
             self._idle.pop(device.key, None)
             self._mark_ready(device)
             self._cond.notify_all()
+        return None
 
     # --- streams: state (all under _cond) ---------------------------------------------------------------------------
 

@@ -282,8 +282,12 @@ def test_stream_backlog_is_bounded_by_the_global_budget(server, session, frames)
             peak = max(peak, pending)
             time.sleep(0.01)
         assert 0 < peak <= budget, (peak, budget)
-        assert _metric(server, 'cadreg_zenoh_refused_frames_total{reason="stream_budget"}') > before
+        refused = _metric(server, 'cadreg_zenoh_refused_frames_total{reason="stream_budget"}') - before
+        assert refused > 0
         poses.settle(quiet_s=2.0, timeout_s=60.0)
+        # each refused frame is answered on its device's poses key: the device backs off, it does not wait
+        told = [b for k, b in poses.bodies if "/cam-b" in k and b.get("code") == "overloaded"]
+        assert len(told) == refused and all("stream_max_pending_bytes" in b["message"] for b in told), told[:2]
     finally:
         poses.close()
 
