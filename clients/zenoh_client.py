@@ -27,6 +27,7 @@ Callbacks never block and never call zenoh: subscriber samples go to a queue dra
 from __future__ import annotations
 
 import itertools
+import json
 import queue
 import time
 from dataclasses import dataclass
@@ -50,6 +51,13 @@ DEFAULT_QUERY_TIMEOUT_S = 120.0
 def session_config(connect: Sequence[str] = (), listen: Sequence[str] = (), *, mode: str = "client") -> zenoh.Config:
     """A zenoh Config with scouting off (no multicast, no gossip) and only the given endpoints."""
     return wire.session_config(mode=mode, listen=listen, connect=connect)
+
+
+def _gist(kind: str, body: dict[str, Any]) -> tuple:
+    """What two services' answers to one query must share: the error code, or the status and the pose."""
+    if kind == "error":
+        return ("error", body.get("code"))
+    return ("result", body.get("status"), json.dumps(body.get("T_map_camera")))
 
 
 def _json_object(data: bytes, what: str) -> dict[str, Any]:
@@ -105,25 +113,40 @@ class ZenohClient(ClientCore):
 
     def query_once(self, site_id: str, payload: bytes, timeout_s: float | None = None) -> dict[str, Any]:
         """One query, no retries: the result dict, or the typed error. What a reply is comes from its encoding
-        (service/zenoh_wire.py), never from its body."""
+        (service/zenoh_wire.py), never from its body. Every reply is read (no consolidation): two that disagree
+        (status, pose or error code) raise BadResponse. zenoh authenticates nobody here, and with its default
+        consolidation the latest reply won: a hostile peer's queryable that answered after the service had its
+        forged pose taken (README, "Who may answer on zenoh"). Services that agree (replicas of one site) pass."""
         timeout_s = self.timeout_s if timeout_s is None else timeout_s
         key = localize_key(site_id)
         started = time.monotonic()
+        answers: list[tuple[str, dict[str, Any]]] = []  # ("result" | "error", body), in arrival order
         try:
-            for reply in self.session.get(key, payload=payload, encoding=wire.ENVELOPE_ENCODING, timeout=timeout_s):
+            for reply in self.session.get(key, payload=payload, encoding=wire.ENVELOPE_ENCODING, timeout=timeout_s,
+                                          consolidation=zenoh.ConsolidationMode.NONE):
                 sample = reply.ok if reply.ok is not None else reply.err
                 kind = wire.body_kind(sample.encoding)
                 data = sample.payload.to_bytes()
                 if reply.ok is not None and kind == "result":
-                    return _json_object(data, "zenoh reply")
-                if reply.err is not None and kind == "error":
-                    raise error_from_body(_json_object(data, "zenoh error reply"))
-                if reply.err is not None and time.monotonic() - started >= 0.9 * timeout_s:
+                    answers.append(("result", _json_object(data, "zenoh reply")))
+                elif reply.err is not None and kind == "error":
+                    answers.append(("error", _json_object(data, "zenoh error reply")))
+                elif reply.err is not None and time.monotonic() - started >= 0.9 * timeout_s:
                     break  # zenoh's own error reply (b"Timeout") when the query timed out
-                raise BadResponse(f"zenoh {'reply' if reply.ok is not None else 'error reply'} on {key} with "
-                                  f"encoding {str(sample.encoding)!r} is no cadreg answer: {data[:200]!r}")
+                else:
+                    raise BadResponse(f"zenoh {'reply' if reply.ok is not None else 'error reply'} on {key} with "
+                                      f"encoding {str(sample.encoding)!r} is no cadreg answer: {data[:200]!r}")
         except zenoh.ZError as exc:
             raise Unreachable(f"zenoh query on {key} failed: {exc}") from None
+        if answers:
+            kind, body = answers[0]
+            if any(_gist(k, b) != _gist(kind, body) for k, b in answers[1:]):
+                raise BadResponse(f"{len(answers)} queryables on {key} answered, and not alike: another service or a "
+                                  "peer that is not one answers there (zenoh authenticates nobody)",
+                                  detail={"answers": [_gist(k, b) for k, b in answers[:5]]})
+            if kind == "error":
+                raise error_from_body(body)
+            return body
         elapsed = time.monotonic() - started
         # zenoh ends a query with no reply both when nobody serves the key (at once) and at the timeout
         if elapsed >= 0.9 * timeout_s:

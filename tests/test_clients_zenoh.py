@@ -250,3 +250,33 @@ def test_query_reply_kind_comes_from_its_encoding(raw_peer) -> None:
         queries.put(None)
         server.join(5)
         queryable.undeclare()
+
+
+def test_a_second_queryable_that_answers_otherwise_is_caught_and_one_that_agrees_passes(endpoint: str) -> None:
+    """zenoh authenticates nobody: a peer's queryable on the service's key that answered after it had its forged
+    pose taken (the default consolidation keeps the latest reply). Every reply is read now; replies that disagree
+    raise BadResponse, and a replica that answers alike (the same status and pose) is no conflict."""
+    rogue = zenoh.open(session_config(connect=[endpoint], mode="peer"))
+    forged = {"status": "ok", "frame_id": "f0", "T_map_camera": [[1, 0, 0, 666], [0, 1, 0, 0], [0, 0, 1, 0],
+                                                                   [0, 0, 0, 1]]}
+    agree = {"status": "ok", "frame_id": "f0", "T_map_camera": np.eye(4).tolist()}
+    answer = {"with": forged}
+
+    def later(query) -> None:
+        def reply() -> None:
+            time.sleep(0.3)  # after the service's reply
+            query.reply(query.key_expr, codec.encode_result(answer["with"]), encoding=zenoh_wire.RESULT_ENCODING)
+            query.drop()
+        threading.Thread(target=reply, daemon=True).start()
+
+    queryable = rogue.declare_queryable("cadreg/demo/localize", later)
+    try:
+        time.sleep(0.5)  # let the peers meet
+        with ZenohClient(endpoint, timeout_s=5) as z:
+            with pytest.raises(cerr.BadResponse, match="2 queryables on cadreg/demo/localize answered, and not alike"):
+                z.query_once("demo", encode_frame(_frame()).envelope())
+            answer["with"] = agree
+            assert z.query_once("demo", encode_frame(_frame()).envelope())["T_map_camera"] == np.eye(4).tolist()
+    finally:
+        queryable.undeclare()
+        rogue.close()
