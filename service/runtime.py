@@ -120,8 +120,10 @@ class Service:
         if unknown:
             raise InvalidFrame(f"unknown part(s): {', '.join(unknown)}", detail={"parts": unknown})
         for name in REQUIRED_PARTS:
-            if not parts.get(name):
+            if parts.get(name) is None:
                 raise InvalidFrame(f"missing part: {name}", detail={"part": name})
+            if not parts[name]:  # sent, and of no bytes (a zenoh envelope's [offset, 0]): said so, not "missing"
+                raise InvalidFrame(f"part {name} is empty", detail={"part": name})
         _check_label_set(entry, meta, has_labels=bool(parts.get("labels")))
         check_image_sizes(parts, self.settings.max_frame_pixels)
         if self.pool is None:

@@ -336,6 +336,13 @@ def test_a_body_cut_short_is_named_so_not_as_a_missing_part(client, frames) -> N
     assert "no closing boundary" in _error(r, 422, "invalid_frame")["message"]
 
 
+def test_an_empty_part_is_named_empty_not_missing(client, frames) -> None:
+    files, data = multipart(frames[0][0])
+    files = {**files, "color": ("color.png", b"", "image/png")}
+    body = _error(_post(client, files, data), 422, "invalid_frame")
+    assert body["message"] == "part color is empty" and body["detail"] == {"part": "color"}, body
+
+
 def test_a_client_answered_keeps_a_usable_server(client, frames) -> None:
     assert client.get("/healthz").status_code == 200
     assert _post(client, *multipart(frames[0][0])).status_code == 200
