@@ -245,6 +245,20 @@ def _camera(intr: Intrinsics, width: int, height: int, which: str) -> CameraIntr
         raise InvalidFrame(f"{which} intrinsics: {exc.message}", detail=exc.detail) from None
 
 
+def check_parts(parts: dict[str, bytes | None]) -> None:
+    """Refuse (InvalidFrame naming it) an unknown part, a required one missing, or one sent with no bytes (a zenoh
+    envelope's [offset, 0], an empty HTTP file part: "missing" named it wrongly). The service checks this on
+    arrival, `decode_frame` again for any other caller."""
+    unknown = sorted(set(parts) - set(PART_NAMES))
+    if unknown:
+        raise InvalidFrame(f"unknown part(s): {', '.join(unknown)}", detail={"parts": unknown})
+    for name in REQUIRED_PARTS:
+        if parts.get(name) is None:
+            raise InvalidFrame(f"missing part: {name}", detail={"part": name})
+        if not parts[name]:
+            raise InvalidFrame(f"part {name} is empty", detail={"part": name})
+
+
 def decode_frame(parts: dict[str, bytes], meta: FrameMeta | dict[str, Any] | str | bytes) -> Frame:
     """Decode wire parts + meta into a validated Frame (raises InvalidFrame on any problem).
 
@@ -252,12 +266,7 @@ def decode_frame(parts: dict[str, bytes], meta: FrameMeta | dict[str, Any] | str
     the colour image must have the depth image's size (same camera).
     """
     meta = parse_meta(meta)
-    unknown = sorted(set(parts) - set(PART_NAMES))
-    if unknown:
-        raise InvalidFrame(f"unknown part(s): {', '.join(unknown)}", detail={"parts": unknown})
-    for name in REQUIRED_PARTS:
-        if name not in parts or parts[name] is None:
-            raise InvalidFrame(f"missing part: {name}", detail={"part": name})
+    check_parts(parts)
     color = _decode_color(parts["color"])
     depth = _decode_depth(parts["depth"])
     labels = _decode_labels(parts["labels"]) if parts.get("labels") is not None else None

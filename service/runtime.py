@@ -17,7 +17,7 @@ from typing import Any
 
 from cadreg.errors import CadregError, InvalidFileError, InvalidFrame, Overloaded, UnknownSite
 
-from .codec import PART_NAMES, REQUIRED_PARTS, check_image_sizes, parse_meta
+from .codec import check_image_sizes, check_parts, parse_meta
 from .metrics import Metrics
 from .pool import JobResult, WorkerPool
 from .registry import SiteEntry, SiteRegistry, check_site_id, inspect_bundle
@@ -116,14 +116,7 @@ class Service:
         # reserve: pool places this job must leave free (WorkerPool.submit); zenoh stream frames pass one
         entry = self.registry.get(site_id)
         meta = parse_meta(meta)
-        unknown = sorted(set(parts) - set(PART_NAMES))
-        if unknown:
-            raise InvalidFrame(f"unknown part(s): {', '.join(unknown)}", detail={"parts": unknown})
-        for name in REQUIRED_PARTS:
-            if parts.get(name) is None:
-                raise InvalidFrame(f"missing part: {name}", detail={"part": name})
-            if not parts[name]:  # sent, and of no bytes (a zenoh envelope's [offset, 0]): said so, not "missing"
-                raise InvalidFrame(f"part {name} is empty", detail={"part": name})
+        check_parts(parts)
         _check_label_set(entry, meta, has_labels=bool(parts.get("labels")))
         check_image_sizes(parts, self.settings.max_frame_pixels)
         if self.pool is None:
