@@ -47,7 +47,7 @@ from .twins import SHAPE_POINTS, RoomTwins
 from .gravity import estimate_floor, map_floor_height, map_up_axis, planar_normals
 from .match import (Hypotheses, MapGraph, best_overall_and_by_group, distinct_best, distinct_pairs,
                     gravity_hypotheses, kabsch_hypotheses, score_graph)
-from .points import frame_to_points, stride_for, too_few_points, voxel_budget, voxel_downsample, window_colours
+from .points import sampled_points, voxel_budget, voxel_downsample, window_colours
 from .refine import GICP_NEIGHBORS, RefineMap
 from .refine_stage import RefineStage
 from .regions import RegionIndex, RegionMaps, region_cloud
@@ -361,10 +361,8 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         later stages score with (seeded: the same frame gives the same answer)."""
         fc = self.config.frame
         with timer("points"):
-            stride = stride_for(frame, fc.pixel_stride, fc.stride_reference_pixels)
-            points = frame_to_points(frame, pixel_stride=stride, min_depth_m=fc.min_depth_m, max_depth_m=fc.max_depth_m)
-            if len(points) < fc.min_points:
-                raise InvalidFrame(too_few_points(len(points), stride, fc.min_depth_m, fc.max_depth_m))
+            points = sampled_points(frame, fc.pixel_stride, reference_pixels=fc.stride_reference_pixels,
+                                    min_depth_m=fc.min_depth_m, max_depth_m=fc.max_depth_m, min_points=fc.min_points)
             down = voxel_downsample(points, fc.voxel_size_m)
             diag.frame_points = len(points)
         with timer("cluster"):

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from ..errors import InvalidFrame
 from ..frame import Frame
 
 # A point budget's voxel grows by this factor until the points fit (`voxel_budget`).
@@ -58,11 +59,17 @@ def stride_for(frame: Frame, pixel_stride: int, reference_pixels: int) -> int:
     return max(pixel_stride, int(round(pixel_stride * np.sqrt(pixels / reference_pixels))))
 
 
-def too_few_points(count: int, stride: int, min_depth_m: float, max_depth_m: float) -> str:
-    """The message of a frame refused for too few points: the count is of the pixels sampled, which a client
-    counting its valid pixels would otherwise not recognise."""
-    return (f"only {count} valid depth points in range {min_depth_m}–{max_depth_m} m "
-            f"(one depth pixel in {stride} along each row and column sampled)")
+def sampled_points(frame: Frame, pixel_stride: int, *, reference_pixels: int, min_depth_m: float,
+                   max_depth_m: float, min_points: int) -> FramePoints:
+    """`frame_to_points` at the stride `stride_for` gives (a search's and a tracked frame's alike); a frame with fewer
+    than `min_points` valid points is refused, the count named as of the pixels sampled (a client counting its
+    valid pixels would otherwise not recognise it)."""
+    stride = stride_for(frame, pixel_stride, reference_pixels)
+    points = frame_to_points(frame, pixel_stride=stride, min_depth_m=min_depth_m, max_depth_m=max_depth_m)
+    if len(points) < min_points:
+        raise InvalidFrame(f"only {len(points)} valid depth points in range {min_depth_m}–{max_depth_m} m "
+                           f"(one depth pixel in {stride} along each row and column sampled)")
+    return points
 
 
 def frame_to_points(frame: Frame, *, pixel_stride: int = 2, min_depth_m: float = 0.1,

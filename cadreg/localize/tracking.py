@@ -49,7 +49,7 @@ from ..errors import InvalidArgument, InvalidFrame
 from ..frame import Frame
 from ..geometry import rotation_angle_deg, transform_points
 from ..result import Diagnostics, Hypothesis, LocalizationResult, Refinement, Roi, Status
-from .points import FramePoints, frame_to_points, stride_for, too_few_points
+from .points import FramePoints, sampled_points
 from .refine import GICP_NEIGHBORS, MIN_ROI_POINTS, RefineMap, covariance_from_hessian, crop_to_roi
 from .stages import StageTimer, confidence, low_overlap_confidence, pose_std_m
 
@@ -208,10 +208,8 @@ def _track_points(localizer: "Localizer", frame: Frame) -> tuple[FramePoints, np
     """The frame's points at the tracking stride inside the ROI (radius γ about their centre, as in the localizer's
     refine stage), that centre (colour-camera frame) and a fixed sample for the fitness."""
     fc, cfg = localizer.config.frame, localizer.config.track
-    stride = stride_for(frame, cfg.pixel_stride, fc.stride_reference_pixels)
-    points = frame_to_points(frame, pixel_stride=stride, min_depth_m=fc.min_depth_m, max_depth_m=fc.max_depth_m)
-    if len(points) < fc.min_points:
-        raise InvalidFrame(too_few_points(len(points), stride, fc.min_depth_m, fc.max_depth_m))
+    points = sampled_points(frame, cfg.pixel_stride, reference_pixels=fc.stride_reference_pixels,
+                            min_depth_m=fc.min_depth_m, max_depth_m=fc.max_depth_m, min_points=fc.min_points)
     points, center = crop_to_roi(points, localizer.config.refine.roi_radius_m)
     check = np.random.default_rng(0).choice(len(points), min(cfg.check_points, len(points)), replace=False)
     return points, center, points.xyz[check]
