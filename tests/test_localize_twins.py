@@ -822,25 +822,8 @@ def test_a_pose_that_looks_like_the_one_a_tie_break_put_first_stands_as_its_riva
     rival (0.835, as rendered) and the same view in the copy room refined too (0.81: beyond the ambiguity margin of
     the answer, within that of the view's pose), the depth puts the view's pose first; the copy, never told from
     it, stands as its rival. A view only room "a" shows (its chair and bin), answered the same way, is told."""
-    from cadreg.io.frames import RecordedFrames
-    from cadreg.localize.refine_stage import RefineRun
-    from cadreg.localize.stages import StageTimer
-    from cadreg.result import Diagnostics
-    from tracking_rooms import render_turn
-
     loc, shared_scan, T_shared, to_b = _shared_view_scan(twin_rooms_dir, twin_shared_view)
-
-    def rank(scan, T_a: np.ndarray, others: list[Refined]):
-        ahead = T_a.copy()
-        ahead[:3, 3] += 0.4 * T_a[:3, 2]
-        entries = [_refined_entry(ahead, 0.85), _refined_entry(T_a, 0.835)] + others
-        candidates, refined, diag = [e.candidate for e in entries], list(entries), Diagnostics()
-        run = RefineRun(scan, "small_gicp", diag, candidates[:1], None, scan.down, scan.down, len(scan.down),
-                        scan.center_camera, Renders())
-        has_rival, margin, rivals = loc._rank_building(
-            run, refined, candidates, lambda c: next(e for e in entries if e.candidate is c))
-        return refined, has_rival, margin, rivals, diag.notes
-
+    rank = lambda scan, T_a, others: _ranked_from_ahead(loc, scan, T_a, others)  # noqa: E731
     in_b = to_b @ T_shared
     assert shared_scan.view.agreement(shared_scan.view.render(loc.field, T_shared))[0] == pytest.approx(0.835, abs=0.005)
     assert 0.85 - 0.81 >= loc._view_margin(0.85) and 0.835 - 0.81 < loc._view_margin(0.835)
@@ -854,12 +837,73 @@ def test_a_pose_that_looks_like_the_one_a_tie_break_put_first_stands_as_its_riva
     assert all(loc._distinct_from_all([c.T_map_camera for c in rivals[k + 1:]], [a.T_map_camera]).all()
                for k, a in enumerate(rivals))
     assert any("were not told from it: 1," in n for n in notes)
+    chair_scan, T_chair = _chair_view_scan(loc, scene0470_dir, tmp_path)
+    refined, has_rival, margin, rivals, notes = rank(chair_scan, T_chair, [])
+    assert refined[0].T_map_camera is T_chair and not has_rival and rivals == []
+
+
+@pytest.mark.realdata
+def test_a_runner_up_whose_copies_the_twin_check_had_no_rays_left_for_stands_as_a_rival(
+        twin_rooms_dir: Path, scene0470_dir: Path, tmp_path: Path) -> None:
+    """RegionConfig.twin_check_rays: the copies of the answer's view are always looked at, a tied runner-up's only
+    while the frame's twin check has rays left (a flat plane of depth, which every copy of every contender shows
+    alike, rendered 3.3 M rays at 100 rooms: 1.1 s). The view only room "a" shows (its chair and bin), answered at
+    its pose with a pose 40 cm ahead the runner-up, is told by its objects when the copies of both were looked at;
+    with no rays left the runner-up's copies are not rendered, and the answer, never told from them, keeps a
+    rival. A runner-up the objects put first has its copies looked at all the same (`_promoted_twins`)."""
+    seen = Localizer.from_site(Site.load(twin_rooms_dir))
+    spent = Localizer.from_site(Site.load(twin_rooms_dir), LocalizeConfig(regions=RegionConfig(twin_check_rays=0)))
+    scan, T_chair = _chair_view_scan(seen, scene0470_dir, tmp_path)
+    refined, has_rival, margin, rivals, notes = _ranked_from_ahead(seen, scan, T_chair, [], ahead_first=False)
+    assert refined[0].T_map_camera is T_chair and not has_rival and rivals == []
+    assert not any("were not looked at" in n for n in notes)
+
+    scan, T_chair = _chair_view_scan(spent, scene0470_dir, tmp_path)
+    looked_from = []
+    twin_views = spent._twin_views
+    spent._twin_views = lambda scan, T, *args, **kw: looked_from.append(T) or twin_views(scan, T, *args, **kw)
+    refined, has_rival, margin, rivals, notes = _ranked_from_ahead(spent, scan, T_chair, [], ahead_first=False)
+    assert looked_from == [T_chair]  # the answer's copies only
+    assert refined[0].T_map_camera is T_chair and has_rival and margin == 0.0
+    assert any("the copies of 1 tied runner-ups' views were not looked at" in n for n in notes)
+    # answered ahead, the objects put the runner-up (the view's pose) first, and its copies are looked at
+    looked_from.clear()
+    refined, has_rival, margin, rivals, notes = _ranked_from_ahead(spent, scan, T_chair, [])
+    assert len(looked_from) == 2 and looked_from[1] is T_chair
+    assert refined[0].T_map_camera is T_chair and not has_rival and rivals == []
+
+
+def _ranked_from_ahead(loc: Localizer, scan, T_a: np.ndarray, others: list[Refined], *, ahead_first: bool = True):
+    """`_rank_building` of a frame answered 40 cm ahead of T_a (view agreement 0.85), T_a refined as its
+    runner-up (0.835), or (ahead_first False) the other way round, and `others` after them: (refined, has a rival,
+    margin, rivals, notes)."""
+    from cadreg.localize.refine_stage import RefineRun
+    from cadreg.result import Diagnostics
+
+    ahead = T_a.copy()
+    ahead[:3, 3] += 0.4 * T_a[:3, 2]
+    first, second = (ahead, T_a) if ahead_first else (T_a, ahead)
+    entries = [_refined_entry(first, 0.85), _refined_entry(second, 0.835)] + others
+    candidates, refined, diag = [e.candidate for e in entries], list(entries), Diagnostics()
+    run = RefineRun(scan, "small_gicp", diag, candidates[:1], None, scan.down, scan.down, len(scan.down),
+                    scan.center_camera, Renders())
+    has_rival, margin, rivals = loc._rank_building(
+        run, refined, candidates, lambda c: next(e for e in entries if e.candidate is c))
+    return refined, has_rival, margin, rivals, diag.notes
+
+
+def _chair_view_scan(loc: Localizer, scene0470_dir: Path, tmp_path: Path):
+    """(Scan, T_map_camera) of a view of the chair and the bin that only room "a" of the twin rooms holds."""
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.localize.stages import StageTimer
+    from cadreg.result import Diagnostics
+    from tracking_rooms import render_turn
+
     frames = render_turn(scene0470_dir / "scene0470_00_vh_clean_2.ply",
                          scene0470_dir / "scene0470_00_vh_clean_2.labels.ply", tmp_path / "turn", n=2)
     chair_view, T_chair = RecordedFrames.open(frames).load(1)
     diag = Diagnostics(site_id="s", bundle_version="v")
-    refined, has_rival, margin, rivals, notes = rank(loc._scan(chair_view, diag, StageTimer(diag.stage_ms)), T_chair, [])
-    assert refined[0].T_map_camera is T_chair and not has_rival and rivals == []
+    return loc._scan(chair_view, diag, StageTimer(diag.stage_ms)), T_chair
 
 
 @pytest.fixture(scope="module")

@@ -266,6 +266,7 @@ class BuildingViews:
         # frame within a few hundredths of each other) and are not listed.
         coarse = scan.view.thinned(TWIN_THIN_STEP)
         thin = coarse.render(self.field, T)
+        scan.twin_rays += thin.size
         score = coarse.agreement(thin)
         # A moved pose that shows the frame less well than the answer may only be a little off (real copies are
         # never placed exactly): it is pulled onto the field, and kept there when that shows the frame better.
@@ -278,6 +279,7 @@ class BuildingViews:
                                   iterations=TWIN_ALIGN_ITERATIONS, reach_m=TWIN_ALIGN_REACH_M)
             aligned = make_Ts(R, t)
             thin_again = coarse.render(self.field, aligned)
+            scan.twin_rays += thin_again.size
             again = coarse.agreement(thin_again)
             better = again > score[low]
             T[low[better]], score[low[better]] = aligned[better], again[better]
@@ -288,6 +290,7 @@ class BuildingViews:
         copies, T = [copies[k] for k in near], T[near]
         # in full: the rays of the first look are traced already
         rendered = scan.view.render_completing(self.field, T, scan.view.thinned_rays(TWIN_THIN_STEP), thin[near])
+        scan.twin_rays += len(T) * (len(scan.view) - len(coarse))
         score = scan.view.agreement(rendered)
         stands = self._stands_beside_contenders(T, score, candidates, refined)
         copies, T, rendered, score = [c for c, k in zip(copies, stands) if k], T[stands], rendered[stands], score[stands]
@@ -579,8 +582,9 @@ class BuildingViews:
             has_rival, margin = True, min(margin, score - max(r.score for r in others))
             alike = self._look_alike(scan, score, np.array([r.score for r in others]),
                                      np.stack([self._render_of(scan, renders, r.outcome) for r in others]), mine)
-            rivals += [next(c for c in candidates if c.T_map_camera is r.T_map_camera)
-                       for r, a in zip(others, alike) if a]
+            # (by the pose array's identity: each refined pose's candidate holds the same array, `_report_refined`)
+            by_pose = {id(c.T_map_camera): c for c in reversed(candidates)}
+            rivals += [by_pose[id(r.T_map_camera)] for r, a in zip(others, alike) if a]
         done = [r.T_map_camera for r in refined] + [r.candidate.T_map_camera for r in refined]
         rest = self._apart_from(candidates, done)
         if rest:

@@ -535,8 +535,8 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
                     if found is not None:
                         found = self._within_search(found, scan)
                         # A pose the graph has already found stays the graph's (it carries the matches).
-                        candidates += [c for c in self._align(found, source, scan, origin=f"fallback:{name}")
-                                       if all(self._distinct(c.T_map_camera, g.T_map_camera) for g in candidates)]
+                        candidates += self._apart_from(self._align(found, source, scan, origin=f"fallback:{name}"),
+                                                       [g.T_map_camera for g in candidates])
                         best = max([best] + [c.score for c in candidates])
                         if best >= enough:
                             break

@@ -248,6 +248,7 @@ class RefineStage:
         self._report_refined(refined, candidates)
         twins = self._twin_views(scan, refined[0].T_map_camera, center_camera, candidates, renders, len(refined),
                                  refined[0].score)
+        unlooked = []
         for r in refined[1:]:
             # A contender the answer cannot be told from: the copies of its view are looked at too. The truth's
             # room may be a copy of the runner-up's room-relative view, not of the answer's (a room lacking
@@ -255,9 +256,15 @@ class RefineStage:
             if refined[0].score - r.score >= self._view_margin(refined[0].score) or not self._distinct(
                     r.T_map_camera, refined[0].T_map_camera):
                 continue
+            if scan.twin_rays >= self.config.regions.twin_check_rays:
+                unlooked.append(r)
+                continue
             more = self._twin_views(scan, r.T_map_camera, center_camera, candidates, renders, len(refined),
                                     refined[0].score)
-            twins += [t for t in more if all(self._distinct(t.T_map_camera, u.T_map_camera) for u in twins)]
+            twins += self._apart_from(more, [u.T_map_camera for u in twins])
+        if unlooked:
+            diag.notes.append(f"the twin check rendered {scan.twin_rays} rays: the copies of {len(unlooked)} tied "
+                              f"runner-ups' views were not looked at")
         if self._copies_wait(scan, refined, twins):
             scan.copies_wait = True
         else:
@@ -299,6 +306,11 @@ class RefineStage:
                 has_rival, margin, rivals = False, mc.confident_margin, []
         if rivals:
             self._closest_fit_first(scan, refined, rivals, refine, candidates, diag)
+        if any(self._distinct(r.T_map_camera, refined[0].T_map_camera) for r in unlooked):
+            # A copy of a runner-up's view nobody looked at may show the frame as well as the answer: what the frame's
+            # objects or depth told the answer from, it was not told from. (A runner-up put first has had its copies
+            # looked at, `_promoted_twins`.)
+            has_rival, margin = True, 0.0
         return has_rival, margin, rivals
 
     def _copies_wait(self, scan: Scan, refined: list[Refined], twins: list[Refined]) -> bool:
@@ -330,9 +342,9 @@ class RefineStage:
             has_rival, margin = self._rival_margin([c.score for c in candidates], [c.T_map_camera for c in candidates])
         # A distinct candidate as close to the best as the contenders, but beyond the refine_contenders refined,
         # was never ruled out: the answer cannot claim to be the one.
-        unexamined = [c for c in candidates[1:] if best.score - c.score < mc.ambiguity_margin
-                      and not any(c is r.candidate for r in refined)
-                      and all(self._distinct(c.T_map_camera, r.T_map_camera) for r in refined)]
+        unexamined = self._apart_from([c for c in candidates[1:] if best.score - c.score < mc.ambiguity_margin
+                                       and not any(c is r.candidate for r in refined)],
+                                      [r.T_map_camera for r in refined])
         if unexamined:
             diag.notes.append(f"{len(unexamined)} more distinct hypotheses as close as the refined ones were not refined")
             has_rival, margin = True, 0.0

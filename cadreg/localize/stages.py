@@ -76,6 +76,8 @@ class Scan:
     and stopped at its node cap with few nodes a room: what set `deeper_below` to deeper_view_agreement.
     copies_wait : the refine stage left the copies of its answer unrefined for the deeper search that follows
     (`RefineStage._copies_wait`).
+    twin_rays : the rays (times poses) the twin check has rendered for this frame so far
+    (RegionConfig.twin_check_rays).
     fine : the fine refinements of this frame's contenders so far, by the contender's identity (the contender kept
     beside its outcome): the second and the deeper look run the refine stage again over candidates that hold the
     first run's contenders, whose refinements would come out the same (`RefineStage._fine_pose`).
@@ -102,6 +104,7 @@ class Scan:
     deeper_below: float = 0.0
     search_cut: bool = False
     copies_wait: bool = False
+    twin_rays: int = 0
     fine: dict[int, tuple[Candidate, RefineOutcome]] = field(default_factory=dict)
 
     @cached_property
