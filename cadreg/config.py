@@ -149,7 +149,9 @@ class FrameConfig(_Section):
     stride_reference_pixels: int = Field(640 * 480, ge=1, description="a depth image of more pixels is sampled with "
                                          "the stride that takes as many of them as pixel_stride (and the tracking "
                                          "stride) takes of one this size (`points.stride_for`): the points, and what "
-                                         "every later stage costs, stay bounded whatever the image's size")
+                                         "every later stage costs, stay bounded whatever the image's size; and the "
+                                         "free-space check's z-buffer cells span the angle they span in an image this "
+                                         "size (`score.reference_camera`)")
     voxel_size_m: float = Field(0.03, gt=0, description="voxel down-sampling of the frame points for clustering and scoring")
     min_points: int = Field(100, ge=1, description="fewer valid depth points than this is no frame to register "
                             "(too few for a plane, a cluster and a GICP)")

@@ -51,7 +51,7 @@ from .points import sampled_points, voxel_budget, voxel_downsample, window_colou
 from .refine import GICP_NEIGHBORS, RefineMap
 from .refine_stage import RefineStage
 from .regions import RegionIndex, RegionMaps, region_cloud
-from .score import DistanceField, ViewCheck, score_poses
+from .score import DistanceField, ViewCheck, reference_camera, score_poses
 from .stages import (NEAR_REACH_DEG, NEAR_REACH_M, Candidate, Choice, Scan, StageTimer, answer_status, confidence,
                      low_overlap_confidence, pose_std_m)
 from .tracking import Tracked, TrackState, track_frame
@@ -383,11 +383,12 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         score = rng.choice(len(down), min(fc.score_points, len(down)), replace=False)
         fit = rng.choice(len(down), min(fc.fit_points, len(down)), replace=False)
         check = rng.choice(len(points), min(fc.check_points, len(points)), replace=False)
+        K = reference_camera(frame.depth_intrinsics, fc.stride_reference_pixels)
         return Scan(points, down, class_index, clusters, floor, score_xyz=down.xyz[score], fit_xyz=down.xyz[fit],
                     fit_lab=rgb_to_lab(down.rgb[fit]), fit_cls=class_index[fit] if labelled.any() else None,
                     fit_rgb=window_colours(frame, down.xyz[fit], COLOUR_WINDOW),
                     check_xyz=points.xyz[check],
-                    zbuf=ViewCheck.zbuffer(down.xyz, frame.depth_intrinsics), K=frame.depth_intrinsics,
+                    zbuf=ViewCheck.zbuffer(down.xyz, K), K=K,
                     center_camera=_centroid(points.xyz), search=frame.search_region,
                     view=FieldView(frame) if len(self.maps) > 1 else None)
 
