@@ -97,14 +97,19 @@ def write_bundle_dir(out_dir: str | Path, files: dict[str, bytes]) -> None:
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    order = sorted(files, key=lambda name: (name == "site.json", name))
-    for name in order:
-        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", dir=out)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(files[name])
-            os.chmod(tmp, 0o644)  # mkstemp makes 0600; a service under another user must read the bundle
-            os.replace(tmp, out / name)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+    for name in sorted(files, key=lambda name: (name == "site.json", name)):
+        write_bundle_file(out, name, files[name])
+
+
+def write_bundle_file(out_dir: Path, name: str, data: bytes) -> None:
+    """One file of a bundle into the existing folder `out_dir`: written to a temporary name, renamed into place
+    (`write_bundle_dir`; a writer of large bundles writes each file as it is encoded, site.json last)."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{name}.", dir=out_dir)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.chmod(tmp, 0o644)  # mkstemp makes 0600; a service under another user must read the bundle
+        os.replace(tmp, out_dir / name)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

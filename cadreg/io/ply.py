@@ -359,9 +359,6 @@ def ply_bytes(vertex: dict[str, np.ndarray], faces: np.ndarray | None = None) ->
         if a.shape != (n,):
             raise InvalidArgument(f"vertex property {k!r} has shape {a.shape}, expected ({n},)")
     dtype = np.dtype([(k, "<" + arrays[k].dtype.str[1:]) for k in names])
-    table = np.empty(n, dtype=dtype)
-    for k in names:
-        table[k] = arrays[k]
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
     header += [f"property {_NUMPY_TO_PLY[arrays[k].dtype.str[1:]]} {k}" for k in names]
     face_bytes = b""
@@ -373,4 +370,13 @@ def ply_bytes(vertex: dict[str, np.ndarray], faces: np.ndarray | None = None) ->
         ft["v"] = faces
         face_bytes = ft.tobytes()
     header.append("end_header")
-    return ("\n".join(header) + "\n").encode("ascii") + table.tobytes() + face_bytes
+    head = ("\n".join(header) + "\n").encode("ascii")
+    # The vertex table is filled in place in the output (a table, its bytes and their concatenation were three
+    # copies of a 100-room building's 0.6 GB map at once).
+    out = bytearray(len(head) + n * dtype.itemsize + len(face_bytes))
+    out[:len(head)] = head
+    table = np.frombuffer(out, dtype=dtype, count=n, offset=len(head))
+    for k in names:
+        table[k] = arrays[k]
+    out[len(head) + table.nbytes:] = face_bytes
+    return bytes(out)

@@ -276,7 +276,14 @@ def compose_site(layout: Layout, root: str | Path) -> Site:
     maps (the same label set and class names): ConfigError otherwise, and for a dropped or moved id a room does not
     have."""
     root = Path(root)
-    rooms = [_Room(e, Site.load(root / e.bundle), np.asarray(e.T_building_room, dtype=np.float64)) for e in layout.rooms]
+    # Each bundle read once, however many rooms copy it (the 100-room benchmark held 100 reads of one, 0.9 GB).
+    bundles: dict[Path, Site] = {}
+    for e in layout.rooms:
+        path = (root / e.bundle).resolve()
+        if path not in bundles:
+            bundles[path] = Site.load(path)
+    rooms = [_Room(e, bundles[(root / e.bundle).resolve()], np.asarray(e.T_building_room, dtype=np.float64))
+             for e in layout.rooms]
     first = rooms[0].site
     for r in rooms[1:]:
         if r.site.classes != first.classes or r.site.label_maps != first.label_maps:
@@ -336,6 +343,8 @@ def compose_site(layout: Layout, root: str | Path) -> Site:
     site = Site(site_id=layout.site_id, version="", manifest=manifest, map=PointSet.concat(maps),
                 raw=PointSet.concat(raws), graph=build_graph(nodes, first.edge_max_m), classes=list(first.classes),
                 label_maps=dict(first.label_maps))
+    maps.clear()  # the rooms' copies, now in the building's clouds (0.8 GB at 100 rooms)
+    raws.clear()
     store_search_structures(site)
     site.refresh_version()
     return site
