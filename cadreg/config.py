@@ -149,9 +149,7 @@ class FrameConfig(_Section):
     stride_reference_pixels: int = Field(640 * 480, ge=1, description="a depth image of more pixels is sampled with "
                                          "the stride that takes as many of them as pixel_stride (and the tracking "
                                          "stride) takes of one this size (`points.stride_for`): the points, and what "
-                                         "every later stage costs, stay bounded whatever the image's size; and the "
-                                         "free-space check's z-buffer cells span the angle they span in an image this "
-                                         "size (`score.reference_camera`)")
+                                         "every later stage costs, stay bounded whatever the image's size")
     voxel_size_m: float = Field(0.03, gt=0, description="voxel down-sampling of the frame points for clustering and scoring")
     min_points: int = Field(100, ge=1, description="fewer valid depth points than this is no frame to register "
                             "(too few for a plane, a cluster and a GICP)")
@@ -458,12 +456,15 @@ class RegionConfig(_Section):
                                          "(`Localizer._told_by_objects`); and a copy of the answer's room that lacks "
                                          "an object holding this share is no twin of the view (`_shows_objects`)")
     # The copies of the answer's view are always looked at; those of each runner-up that ties with it only while the
-    # frame's twin check has rendered fewer rays than this (rays times poses). On the 100-room benchmark a frame's
-    # twin check renders 0.08-0.14 M at the median and 0.70 M at most; a flat plane of depth, which every copy of
-    # every contender shows alike, rendered 3.3 M (1.1 s of its 1.9 s).
+    # frame's twin check has rendered fewer rays than this (rays times poses, every refine run of the frame
+    # together: the second and the deeper look go on from what the first spent). On the 100-room benchmark a
+    # frame's twin check renders 0.08-0.14 M at the median and 0.70 M at most; a flat plane of depth, which every
+    # copy of every contender shows alike, rendered 3.3 M (1.1 s of the 1.9 s it still took once the copies were
+    # merged in one call; 5.0 s before).
     twin_check_rays: int = Field(1_000_000, ge=0, description="rays (times poses) the twin check of a frame may "
-                                 "render before it stops looking at the copies of the runner-ups' views: the answer "
-                                 "is then not `ok`, the runner-ups it did not look from standing as its rivals")
+                                 "render before it stops looking at the copies of tied runner-ups' views: the "
+                                 "answer then has a rival (margin 0, not `ok`) unless the frame's objects or depth "
+                                 "put such a runner-up first, whose copies are then looked at")
     halo_m: float = Field(3.0, ge=0, description="a region's refinement map also holds its neighbours' points this "
                           "far outside its box: γ (RefineConfig.roi_radius_m) covers the whole region of interest")
 

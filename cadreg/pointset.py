@@ -90,7 +90,7 @@ class PointSet:
 
     # --- PLY ----------------------------------------------------------------------------------------------------
 
-    def to_ply_bytes(self) -> bytes:
+    def to_ply_bytes(self) -> bytearray:
         """Binary little-endian PLY with the columns of the module docstring (deterministic)."""
         vertex: dict[str, np.ndarray] = {}
         for name, (cols, _) in _COLUMNS.items():

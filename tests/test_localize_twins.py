@@ -873,6 +873,25 @@ def test_a_runner_up_whose_copies_the_twin_check_had_no_rays_left_for_stands_as_
     assert refined[0].T_map_camera is T_chair and not has_rival and rivals == []
 
 
+@pytest.mark.realdata
+def test_the_twin_check_counts_every_ray_it_renders(twin_rooms_dir: Path, twin_shared_view,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """`Scan.twin_rays`, what RegionConfig.twin_check_rays bounds: every ray the twin check traces at every pose (its
+    first look, the aligned copies' second, the full renders), and no other render."""
+    from cadreg.localize.field_view import FieldView
+
+    loc, scan, T_a, _ = _shared_view_scan(twin_rooms_dir, twin_shared_view)
+    traced = []
+    render = FieldView.render
+    monkeypatch.setattr(FieldView, "render", lambda view, field, T: traced.append(
+        len(np.asarray(T).reshape(-1, 4, 4)) * len(view)) or render(view, field, T))
+    scan.view.render(loc.field, T_a)  # not the twin check's
+    traced.clear()
+    copies = loc._twin_views(scan, T_a, scan.center_camera, [_refined_entry(T_a, 0.8).candidate], Renders(), 1, 0.8)
+    assert copies and len(traced) >= 2 and sum(traced) >= len(scan.view)  # a first look, the rest of the rays
+    assert scan.twin_rays == sum(traced)
+
+
 def _ranked_from_ahead(loc: Localizer, scan, T_a: np.ndarray, others: list[Refined], *, ahead_first: bool = True):
     """`_rank_building` of a frame answered 40 cm ahead of T_a (view agreement 0.85), T_a refined as its
     runner-up (0.835), or (ahead_first False) the other way round, and `others` after them: (refined, has a rival,

@@ -78,6 +78,33 @@ def test_round_trip_is_bit_exact(small_site, tmp_path):
         assert (tmp_path / "b" / name).read_bytes() == (tmp_path / "c" / name).read_bytes()
 
 
+def test_a_save_that_fails_leaves_the_bundle_as_it_was(small_site, tmp_path, monkeypatch):
+    """`Site.save` writes each file as it is encoded (`BundleWriter`), and replaces the bundle's files only once every
+    one is written: a failure part way leaves the folder's bundle as it was, loadable, with no stray file; a file
+    where the folder should be is refused, naming it."""
+    small_site.save(tmp_path / "b")
+    before = {p.name: p.read_bytes() for p in (tmp_path / "b").iterdir()}
+    encoded = Site._data_files
+
+    def fails_after_the_clouds(site):
+        for k, item in enumerate(encoded(site)):
+            if k == 2:
+                raise OSError("disk full")
+            yield item
+
+    monkeypatch.setattr(Site, "_data_files", fails_after_the_clouds)
+    changed = Site.load(tmp_path / "b")
+    changed.site_id = "other"
+    with pytest.raises(OSError, match="disk full"):
+        changed.save(tmp_path / "b")
+    assert {p.name: p.read_bytes() for p in (tmp_path / "b").iterdir()} == before
+    monkeypatch.undo()
+    assert Site.load(tmp_path / "b").site_id == "room"
+    (tmp_path / "f").write_text("not a folder")
+    with pytest.raises(InvalidFileError, match="is a file"):
+        small_site.save(tmp_path / "f")
+
+
 def test_version_follows_content(small_site):
     pts, colors, labels = labelled_room()
     again = site_from_labelled_points(pts, colors, None, labels, site_id="room", inputs={})

@@ -336,7 +336,7 @@ def write_ply(path: str | Path, vertex: dict[str, np.ndarray], faces: np.ndarray
 
 
 def scan_ply_bytes(points: np.ndarray, colors: np.ndarray, faces: np.ndarray | None = None,
-                   labels: np.ndarray | None = None) -> bytes:
+                   labels: np.ndarray | None = None) -> bytearray:
     """A scan PLY as `read_scan` reads it: x, y, z (points (n, 3), their dtype kept), red, green, blue (colors (n, 3)
     uint8), the per-vertex NYU40 `label` (labels (n,)) when given, and the faces."""
     vertex = {axis: points[:, k] for k, axis in enumerate("xyz")}
@@ -346,7 +346,7 @@ def scan_ply_bytes(points: np.ndarray, colors: np.ndarray, faces: np.ndarray | N
     return ply_bytes(vertex, faces)
 
 
-def ply_bytes(vertex: dict[str, np.ndarray], faces: np.ndarray | None = None) -> bytes:
+def ply_bytes(vertex: dict[str, np.ndarray], faces: np.ndarray | None = None) -> bytearray:
     """Encode a binary little-endian PLY.
 
     vertex : property name -> (N,) array (dtype kept: float32, uint8, int32, int16, ...), in the given order.
@@ -371,12 +371,12 @@ def ply_bytes(vertex: dict[str, np.ndarray], faces: np.ndarray | None = None) ->
         face_bytes = ft.tobytes()
     header.append("end_header")
     head = ("\n".join(header) + "\n").encode("ascii")
-    # The vertex table is filled in place in the output (a table, its bytes and their concatenation were three
-    # copies of a 100-room building's 0.6 GB map at once).
+    # The vertex table is filled in place in the output, which is returned as it is (a table, its bytes and their
+    # concatenation were three copies of a 100-room building's 0.6 GB map at once).
     out = bytearray(len(head) + n * dtype.itemsize + len(face_bytes))
     out[:len(head)] = head
     table = np.frombuffer(out, dtype=dtype, count=n, offset=len(head))
     for k in names:
         table[k] = arrays[k]
     out[len(head) + table.nbytes:] = face_bytes
-    return bytes(out)
+    return out

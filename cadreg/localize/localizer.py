@@ -383,7 +383,7 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
         score = rng.choice(len(down), min(fc.score_points, len(down)), replace=False)
         fit = rng.choice(len(down), min(fc.fit_points, len(down)), replace=False)
         check = rng.choice(len(points), min(fc.check_points, len(points)), replace=False)
-        K = reference_camera(frame.depth_intrinsics, fc.stride_reference_pixels)
+        K = reference_camera(frame.depth_intrinsics)
         return Scan(points, down, class_index, clusters, floor, score_xyz=down.xyz[score], fit_xyz=down.xyz[fit],
                     fit_lab=rgb_to_lab(down.rgb[fit]), fit_cls=class_index[fit] if labelled.any() else None,
                     fit_rgb=window_colours(frame, down.xyz[fit], COLOUR_WINDOW),

@@ -304,13 +304,13 @@ class RefineStage:
                 # The frame's objects, or its depth, rule the other poses out: no rival stands, whatever the view
                 # margin.
                 has_rival, margin, rivals = False, mc.confident_margin, []
-        if rivals:
-            self._closest_fit_first(scan, refined, rivals, refine, candidates, diag)
         if any(self._distinct(r.T_map_camera, refined[0].T_map_camera) for r in unlooked):
             # A copy of a runner-up's view nobody looked at may show the frame as well as the answer: what the frame's
-            # objects or depth told the answer from, it was not told from. (A runner-up put first has had its copies
-            # looked at, `_promoted_twins`.)
+            # objects or depth told the answer from, it was not told from. (A runner-up they put first has had its
+            # copies looked at, `_promoted_twins`; whatever the order below, the answer now has a rival.)
             has_rival, margin = True, 0.0
+        if rivals:
+            self._closest_fit_first(scan, refined, rivals, refine, candidates, diag)
         return has_rival, margin, rivals
 
     def _copies_wait(self, scan: Scan, refined: list[Refined], twins: list[Refined]) -> bool:

@@ -17,6 +17,11 @@ from ..site.bundle import FieldGrid
 from . import field_kernels, view_kernels
 from .points import voxel_indices
 
+# The free-space check's z-buffer cells (`ViewCheck`, cell_px pixels, pooled) and its count of cells to compare
+# (min_cells) were set on 640 x 480 depth images: every frame is projected as a camera of that many pixels would see
+# it (`reference_camera`).
+ZBUFFER_REFERENCE_PIXELS = 640 * 480
+
 # A stored field holds distances in steps of truncate_m / QUANT_MAX, one byte a cell.
 QUANT_MAX = 255
 
@@ -232,8 +237,9 @@ class ViewCheck:
     @staticmethod
     def zbuffer(xyz_camera: np.ndarray, K, *, cell_px: int = 8) -> np.ndarray:
         """(rows, cols) nearest measured depth per cell of `cell_px` pixels (inf where nothing was measured).
-        xyz_camera : (m, 3) frame points, camera frame; K : the depth camera's intrinsics (the colour camera's
-        offset of a few centimetres does not matter at this resolution)."""
+        xyz_camera : (m, 3) frame points, camera frame; K : the depth camera's intrinsics, at the resolution the
+        checks project with (`reference_camera`; the colour camera's offset of a few centimetres does not matter at
+        this resolution)."""
         return ViewCheck._render(xyz_camera, np.eye(4), K, cell_px=cell_px, z_min=1e-3)
 
     @staticmethod
@@ -303,13 +309,14 @@ class ViewCheck:
         return 0.0 if seen < min_points else front / seen
 
 
-def reference_camera(K: CameraIntrinsics, reference_pixels: int) -> CameraIntrinsics:
+def reference_camera(K: CameraIntrinsics, reference_pixels: int = ZBUFFER_REFERENCE_PIXELS) -> CameraIntrinsics:
     """The camera K at the resolution of about `reference_pixels` pixels, its field of view kept: what a frame's
     z-buffer (`ViewCheck.zbuffer`) and every check against it project with, so that a cell of cell_px pixels spans the
     same angle whatever the sensor's resolution. In the sensor's own pixels an 80 x 60 frame's z-buffer held 5 x 4
-    cells once pooled, fewer than a depth comparison needs, which then counts as no evidence against a pose (1.0):
-    real RedKitchen frames shrunk to 80 x 60 were answered `ok` 1 m off (5 of 50), where at 160 x 120 and up they
-    were held back by their depth. A 4096 x 3072 frame's cells were finer than the map's surface sampling."""
+    cells once pooled, and fewer than the 20 a depth comparison needs held both a measured depth and the map, which
+    counts as no evidence against a pose (1.0): real RedKitchen frames shrunk to 80 x 60 were answered `ok` 0.4-1.05 m
+    off (5 of 50), where at 160 x 120 and up they were held back by their depth. A 4096 x 3072 frame's cells were
+    finer than the map's surface sampling."""
     scale = np.sqrt(reference_pixels / (K.width * K.height))
     if abs(scale - 1.0) < 1e-9:
         return K

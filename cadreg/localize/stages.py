@@ -57,8 +57,9 @@ class Scan:
     fit_rgb : (len(fit_xyz), 3) colours of fit_xyz, each the mean of the colour pixels about its own
         (`points.window_colours`): what the colour gate compares with the map's (`Localizer._chroma_at`).
     check_xyz : (≤ check_points, 3) float64 sample of `points` for the final fitness.
-    zbuf : coarse z-buffer of `points` (`score.ViewCheck.zbuffer`) for the free-space check; K : the depth
-        intrinsics it was projected with. None for scans built without a frame.
+    zbuf : coarse z-buffer of `points` (`score.ViewCheck.zbuffer`) for the free-space check; K : the intrinsics it
+        was projected with, the depth camera's at the checks' resolution (`score.reference_camera`: no pixel index
+        of the depth image). None for scans built without a frame.
     center_camera : (3,) centroid of `points`: the centre of the region of interest (paper §2.5), whose region
     a pose is refined in (`Localizer.maps_at`). search : the client's search region (Frame.search_region).
     unverified : in a building, the best hypotheses of rooms that tied with the best but were not verified (more

@@ -30,14 +30,14 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
 from ..config import GraphConfig
 from ..errors import BundleIntegrityError, ConfigError, InvalidFileError, InvalidFrame
-from ..io.bundle_files import (FileStamp, file_stamp, map_npy, npy_bytes, read_bytes, read_json, sha256_bytes,
-                                sha256_file, write_bundle_file)
+from ..io.bundle_files import (BundleWriter, FileStamp, file_stamp, map_npy, npy_bytes, read_bytes, read_json, sha256_bytes,
+                                sha256_file)
 from ..io.ply import release_pages
 from ..labels import labels_to_class_index
 from ..pointset import MappedRows, PointSet
@@ -247,7 +247,7 @@ class Site:
 
     # --- encoding ------------------------------------------------------------------------------------------------
 
-    def _data_files(self) -> Iterator[tuple[str, bytes]]:
+    def _data_files(self) -> Iterator[tuple[str, bytes | bytearray]]:
         """(name, bytes) of map.ply, raw.ply, graph.json and the stored grids, each encoded as it is asked for
         (deterministic: same content, same bytes). One at a time: a 100-room building's files are 1.4 GB encoded,
         and held at once they were a quarter of its `site compose`'s peak memory."""
@@ -261,15 +261,15 @@ class Site:
         if self.pyramid is not None:
             yield "pyramid.npy", npy_bytes(self.pyramid.grids)
 
-    def refresh_version(self, out_dir: Path | None = None) -> None:
+    def refresh_version(self, stage: Callable[[str, bytes | bytearray], None] | None = None) -> None:
         """Recompute `version` and bring `manifest` up to date with the content (what site.json will hold: schema,
-        site id, version, file hashes, classes, label maps, counts); with `out_dir` (an existing folder), write each
-        data file there as it is encoded."""
+        site id, version, file hashes, classes, label maps, counts); each data file, as it is encoded, is also given
+        to `stage` (name, bytes) when one is given (`save`)."""
         hashes = {}
         for name, data in self._data_files():
             hashes[name] = sha256_bytes(data)
-            if out_dir is not None:
-                write_bundle_file(out_dir, name, data)
+            if stage is not None:
+                stage(name, data)
             del data  # before the next file is encoded
         self.version = version_of(hashes)
         meta = dict(self.manifest)
@@ -303,13 +303,12 @@ class Site:
         self.manifest = meta
 
     def save(self, out_dir: str | Path) -> None:
-        """Write the bundle into `out_dir` (created if needed; existing bundle files are replaced): each data file
-        to a temporary name and renamed into place, site.json, which vouches for them, last (`write_bundle_file`:
-        a reader never sees a new site.json beside old data)."""
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        self.refresh_version(out)
-        write_bundle_file(out, "site.json", json.dumps(self.manifest, indent=1, sort_keys=True).encode())
+        """Write the bundle into `out_dir` (created if needed; existing bundle files are replaced, all at once, once
+        every one is written: `BundleWriter`)."""
+        with BundleWriter(out_dir) as bundle:
+            self.refresh_version(bundle.stage)
+            bundle.stage("site.json", json.dumps(self.manifest, indent=1, sort_keys=True).encode())
+            bundle.commit()
 
     @staticmethod
     def read_manifest(site_dir: str | Path, *, verify: bool = True) -> dict[str, Any]:

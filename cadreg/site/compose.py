@@ -278,12 +278,12 @@ def compose_site(layout: Layout, root: str | Path) -> Site:
     root = Path(root)
     # Each bundle read once, however many rooms copy it (the 100-room benchmark held 100 reads of one, 0.9 GB).
     bundles: dict[Path, Site] = {}
+    rooms = []
     for e in layout.rooms:
-        path = (root / e.bundle).resolve()
-        if path not in bundles:
-            bundles[path] = Site.load(path)
-    rooms = [_Room(e, bundles[(root / e.bundle).resolve()], np.asarray(e.T_building_room, dtype=np.float64))
-             for e in layout.rooms]
+        key = (root / e.bundle).resolve()
+        if key not in bundles:
+            bundles[key] = Site.load(root / e.bundle)  # (errors name the bundle as the layout does)
+        rooms.append(_Room(e, bundles[key], np.asarray(e.T_building_room, dtype=np.float64)))
     first = rooms[0].site
     for r in rooms[1:]:
         if r.site.classes != first.classes or r.site.label_maps != first.label_maps:
