@@ -142,3 +142,33 @@ def test_binary_faces_of_mixed_lengths(tmp_path):
     (tmp_path / "bad.ply").write_bytes(head.encode() + verts + faces[:-3])
     with pytest.raises(InvalidFileError, match="bad.ply.*face.*truncated"):
         read_ply(tmp_path / "bad.ply")
+
+
+def test_a_meshs_unused_vertices_are_dropped_with_their_labels(tmp_path):
+    """`read_scan` keeps the vertices some face uses (stray ones 2 km away stretched a build over 2 km), their
+    colours, normals and labels with them, and renumbers the faces."""
+    from cadreg.io.ply import scan_ply_bytes
+
+    v = np.array([[0, 0, 0], [9, 9, 9], [1, 0, 0], [0, 1, 0], [2000, 2000, 0], [1, 1, 0]], np.float32)
+    c = np.arange(18, dtype=np.uint8).reshape(6, 3)
+    f = np.array([[0, 2, 3], [2, 5, 3]])
+    (tmp_path / "m.ply").write_bytes(scan_ply_bytes(v, c, f, np.array([1, 7, 2, 3, 9, 5], np.uint16)))
+    scan = read_scan(tmp_path / "m.ply")
+    used = [0, 2, 3, 5]
+    assert np.array_equal(scan.points, v[used]) and np.array_equal(scan.colors, c[used])
+    assert np.array_equal(scan.labels, [1, 2, 3, 5]) and len(scan.normals) == 4
+    assert np.array_equal(scan.points[scan.faces], v[f])  # the same triangles
+
+
+def test_coordinates_the_maps_floats_cannot_keep_are_refused_with_the_shift_to_apply(tmp_path):
+    """A georeferenced scan (UTM: 4,100 km from the origin, where 32-bit floats keep 25-50 cm) is refused, naming
+    the shift that brings it near the origin; 1 km from it is kept to well under a millimetre."""
+    from cadreg.io.ply import scan_ply_bytes
+
+    tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float64)
+    colours = np.full((3, 3), 200, np.uint8)
+    (tmp_path / "near.ply").write_bytes(scan_ply_bytes((tri + [1000, -500, 20]).astype(np.float32), colours))
+    assert np.allclose(read_scan(tmp_path / "near.ply").points, tri + [1000, -500, 20])
+    (tmp_path / "utm.ply").write_bytes(scan_ply_bytes(tri + [500000.0, 4100000.0, 20.0], colours))
+    with pytest.raises(InvalidFileError, match=r"utm\.ply.*subtract \(500000, 4100000, 20\)"):
+        read_scan(tmp_path / "utm.ply")

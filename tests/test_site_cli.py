@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import subprocess
+import sys
 
 import pytest
 
@@ -70,3 +73,17 @@ def test_errors_name_the_file_and_exit_2(scene0470_dir, scene0470_site_dir, tmp_
     with pytest.raises(SystemExit):
         main(["site", "build", "--scan", "a.ply", "--scan2cad", "b.json", "--out", str(tmp_path / "y")])
     assert "--cad-root" in capsys.readouterr().err
+
+
+def test_a_reader_that_leaves_early_gets_no_traceback(scene0470_site_dir):
+    """`cadreg site info SITE | head -1`: the command's output goes to a pipe nobody reads any more; it stops
+    quietly (exit 141, as a shell reports a command SIGPIPE ended) where it printed a BrokenPipeError traceback."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        proc = subprocess.run([sys.executable, "-m", "cadreg.cli.main", "site", "info", str(scene0470_site_dir)],
+                              stdout=write_end, stderr=subprocess.PIPE, timeout=300)
+    finally:
+        os.close(write_end)
+    assert proc.returncode == 141, proc.stderr.decode()
+    assert b"Traceback" not in proc.stderr and b"BrokenPipe" not in proc.stderr

@@ -16,6 +16,7 @@ import datetime as _dt
 import logging
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -23,12 +24,13 @@ import numpy as np
 
 from .. import __version__
 from ..config import AutoCadConfig, GraphConfig, SiteBuildConfig
-from ..errors import InvalidArgument
+from ..errors import InvalidArgument, InvalidFileError
 from ..io.bundle_files import sha256_file
 from ..io.cad import cad_model_path, load_cad_mesh
 from ..io.ply import ScanPoints, read_scan
 from ..io.scan2cad import TRS, read_scan2cad, select_scan
 from ..labels import GRAPH_CLASSES, NYU40, STRUCTURE_CLASSES, default_label_maps, labels_to_class_index, synset_class
+from ..localize.gravity import map_up_axis
 from ..pointset import SOURCE_RAW, PointSet
 from .bundle import Site
 from .enhance import CadPlacement, EnhancedMap, enhance_map
@@ -43,6 +45,91 @@ log = logging.getLogger("cadreg.site")
 # Points sampled on a scan mesh's large triangles at most (`sample_large_triangles`): 10 M take about 2 GB while they
 # are made, and cover 2250 m² of triangles at the default 1.5 cm spacing.
 MAX_TRIANGLE_SAMPLES = 10_000_000
+
+
+# A site's distance field holds one byte a 3 cm cell over the box of its map, 0.3 m wider a side
+# (`score.building_field`, `score.DistanceField`): a scan whose box would need more cells than this is refused before
+# anything is built. 4 G cells is a building of 100 x 60 x 10 m at most; a room scanned in millimetres (3.5 km
+# across) or three stray vertices 2 km away asked for 10^11-10^14, and the build ran the machine out of memory.
+MAX_FIELD_CELLS = 4_000_000_000
+# A Scan2CAD model lies on the scan it annotates: the median distance of its surface to the scan's points was 1.9-4.6
+# cm for scene0470's seven. One farther than this is refused, naming the file (`_check_annotation_fits`): the
+# annotation of a y-up copy of the scan put its CADs 58-117 cm off, and the site built without a word answered
+# `ok` where it was wrong.
+MAX_ANNOTATION_MEDIAN_M = 0.15
+# A scan whose surfaces put its up farther than this from +z is warned of (`_warn_of_its_frame_and_labels`).
+MAX_UP_TILT_DEG = 20.0
+FIELD_VOXEL_M = 0.03
+FIELD_MARGIN_M = 0.3
+# The surfaces of a scan made from inside face where it was scanned from: at each side of its box (the floor, the
+# ceiling, the outer walls) the points whose normal lies along that side's axis face into the box. When more than this
+# share of them face out, the mesh's winding (or its stored normals) is reversed and every normal is turned: the
+# localizer takes a surface seen from behind as no evidence (`Localizer._seen_from_behind`), and a scan with
+# reversed winding built without a word and placed no frame (0 of 50 renders, all `uncertain`).
+REVERSED_SHARE = 0.8
+SIDE_BAND_M = 0.15
+MIN_SIDE_POINTS = 100
+
+
+def _check_extent(path: Path, xyz: np.ndarray) -> None:
+    """InvalidFileError when the scan's box would need more than MAX_FIELD_CELLS field cells (module text)."""
+    extent = xyz.max(axis=0).astype(np.float64) - xyz.min(axis=0)
+    cells = float(np.prod(np.ceil((extent + 2 * FIELD_MARGIN_M) / FIELD_VOXEL_M) + 2))
+    if cells > MAX_FIELD_CELLS:
+        size = " x ".join(f"{e:,.1f}" for e in extent)
+        raise InvalidFileError(path, f"spans {size} m: its distance field would hold {cells:.2g} cells of "
+                                     f"{FIELD_VOXEL_M * 100:.0f} cm, more than a site may ({MAX_FIELD_CELLS:.0g}). Is "
+                                     "it in millimetres (scale it to metres), or are there stray vertices far from "
+                                     "the rest (remove them)?")
+
+
+def _facing_inward(scan: ScanPoints) -> ScanPoints:
+    """The scan with every normal turned when most of those at the sides of its box face out of it (REVERSED_SHARE;
+    the scan as it is when they face in, or too few points say)."""
+    if scan.normals is None or not len(scan.points):
+        return scan
+    xyz, n = scan.points.astype(np.float64), scan.normals.astype(np.float64)
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    inward = outward = 0
+    for axis in range(3):
+        along = np.abs(n[:, axis]) > 0.9
+        for side, into in ((xyz[:, axis] <= lo[axis] + SIDE_BAND_M, 1.0), (xyz[:, axis] >= hi[axis] - SIDE_BAND_M, -1.0)):
+            facing = n[along & side, axis] * into
+            inward += int(np.count_nonzero(facing > 0))
+            outward += int(np.count_nonzero(facing < 0))
+    if inward + outward < MIN_SIDE_POINTS or outward <= REVERSED_SHARE * (inward + outward):
+        return scan
+    log.warning("the scan's normals face out of it at the sides of its box (%d of %d points): its winding is "
+                "reversed, and every normal is turned", outward, inward + outward)
+    return replace(scan, normals=-scan.normals)
+
+
+def _warn_of_its_frame_and_labels(scan: ScanPoints) -> None:
+    """Warnings (the build goes on) for a scan whose surfaces put its up elsewhere than +z, which the build takes as
+    up (objects clustered and boxed, CADs aligned and rooms cut along it: a y-up scene0470 built its chairs as seats
+    and bases apart, and auto-CAD aligned none of 8), and for labels none of which is an NYU40 id (raw category ids
+    of 1000 and up gave no object, without a word)."""
+    if scan.normals is not None and len(scan.normals):
+        up = map_up_axis(scan.normals.astype(np.float64), points=scan.points.astype(np.float64))
+        if abs(float(up[2])) < np.cos(np.radians(MAX_UP_TILT_DEG)):
+            log.warning("the scan's surfaces put its up along (%.2f, %.2f, %.2f), not +z, which the build takes as up: "
+                        "turn it z-up (objects are clustered, CADs aligned and rooms cut along z)", *up)
+    if scan.labels is not None and len(scan.labels) and not np.isin(scan.labels, list(NYU40)).any():
+        log.warning("none of the scan's labels (ids %d to %d) is an NYU40 id: no object is made from them",
+                    int(scan.labels.min()), int(scan.labels.max()))
+
+
+def _check_annotation_fits(fits: list[dict[str, Any]], inputs: dict[str, Any]) -> None:
+    """InvalidFileError naming the Scan2CAD file when a CAD it aligns lies more than MAX_ANNOTATION_MEDIAN_M from the
+    scan (the median distance of its surface samples to the raw points, `enhance_map`)."""
+    off = [f for f in fits if f["origin"] == "annotation" and f["median_distance_to_scan_m"] is not None
+           and f["median_distance_to_scan_m"] > MAX_ANNOTATION_MEDIAN_M]
+    if off:
+        listed = ", ".join(f"{f['id']} ({f['cad_id']}) {100 * f['median_distance_to_scan_m']:.0f} cm" for f in off)
+        raise InvalidFileError(inputs["scan2cad"]["path"], f"{len(off)} of the {len(fits)} CAD models it aligns lie "
+                               f"farther than {100 * MAX_ANNOTATION_MEDIAN_M:.0f} cm from the scan (the median distance "
+                               f"of their surfaces; a fitting alignment lies within a few cm): {listed}. Is it the "
+                               "annotation of another scan, or of this one in another frame (z up, metres)?")
 
 
 def _stage(progress: Progress | None, base: int, span: int, total: int) -> Progress | None:
@@ -135,6 +222,7 @@ def _assemble(
     classes = list(GRAPH_CLASSES)
     enhanced: EnhancedMap = enhance_map(raw, structure, placements, classes, config.enhance,
                                         _stage(progress, base, 5, total))
+    _check_annotation_fits(enhanced.cad_fit, inputs)
     m = enhanced.map
     cluster_nodes = _cluster_nodes(m, classes, enhanced.cad_nodes, config, _stage(progress, base + 5, 2, total))
     graph = build_graph(enhanced.cad_nodes + cluster_nodes, config.graph.edge_max_m)
@@ -394,8 +482,11 @@ def build_site(
         raise InvalidArgument("auto-CAD needs cad_root (the CAD library)")
     total = 12
     enh = config.enhance
-    scan = sample_large_triangles(read_scan(scan_ply, labels_ply), min_edge_m=enh.sample_edge_m,
-                                  spacing_m=enh.sample_spacing_m)
+    scan = read_scan(scan_ply, labels_ply)
+    _check_extent(scan_ply, scan.points)
+    scan = _facing_inward(scan)
+    _warn_of_its_frame_and_labels(scan)
+    scan = sample_large_triangles(scan, min_edge_m=enh.sample_edge_m, spacing_m=enh.sample_spacing_m)
     inputs: dict[str, Any] = {"scan": {"path": str(scan_ply), "sha256": sha256_file(scan_ply)}}
     if labels_ply is not None:
         inputs["labels"] = {"path": str(labels_ply), "sha256": sha256_file(labels_ply)}
