@@ -339,7 +339,7 @@ def read_scan(path: str | Path, labels_path: str | Path | None = None, *, label_
 def _check_precision(path: Path, xyz: np.ndarray) -> None:
     """InvalidFileError when the scan's coordinates lie so far from the origin that the map's 32-bit floats would
     not keep them to MAX_COORDINATE_STEP_M (a georeferenced scan: at 4,100 km from the origin, a UTM northing, they
-    keep 0.5 m, and a room built so had half its points merged and 46 made-up objects)."""
+    keep 25 cm, and a room built so had half its points merged and 46 made-up objects)."""
     far = float(np.abs(xyz).max()) if len(xyz) else 0.0
     step = float(np.spacing(np.float32(far)))
     if step > MAX_COORDINATE_STEP_M:

@@ -49,9 +49,11 @@ MAX_TRIANGLE_SAMPLES = 10_000_000
 
 # A site's distance field holds one byte a 3 cm cell over the box of its map, 0.3 m wider a side
 # (`score.building_field`, `score.DistanceField`): a scan whose box would need more cells than this is refused before
-# anything is built. 4 G cells is a building of 100 x 60 x 10 m at most; a room scanned in millimetres (3.5 km
+# anything is built. A building of 120 x 80 x 10 m needs 3.8 G; a room scanned in millimetres (3.5 km
 # across) or three stray vertices 2 km away asked for 10^11-10^14, and the build ran the machine out of memory.
 MAX_FIELD_CELLS = 4_000_000_000
+FIELD_VOXEL_M = 0.03
+FIELD_MARGIN_M = 0.3
 # A Scan2CAD model lies on the scan it annotates: the median distance of its surface to the scan's points was 1.9-4.6
 # cm for scene0470's seven. One farther than this is refused, naming the file (`_check_annotation_fits`): the
 # annotation of a y-up copy of the scan put its CADs 58-117 cm off, and the site built without a word answered
@@ -59,8 +61,6 @@ MAX_FIELD_CELLS = 4_000_000_000
 MAX_ANNOTATION_MEDIAN_M = 0.15
 # A scan whose surfaces put its up farther than this from +z is warned of (`_warn_of_its_frame_and_labels`).
 MAX_UP_TILT_DEG = 20.0
-FIELD_VOXEL_M = 0.03
-FIELD_MARGIN_M = 0.3
 # The surfaces of a scan made from inside face where it was scanned from: at each side of its box (the floor, the
 # ceiling, the outer walls) the points whose normal lies along that side's axis face into the box. When more than this
 # share of them face out, the mesh's winding (or its stored normals) is reversed and every normal is turned: the
