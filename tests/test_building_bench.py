@@ -493,7 +493,8 @@ def test_a_composed_room_with_a_moved_object_carries_its_node_and_points(scene04
 def test_a_bundle_that_several_rooms_copy_is_read_once(scene0470_site_dir: Path, tmp_path: Path,
                                                         monkeypatch: pytest.MonkeyPatch) -> None:
     """`compose_site` reads each bundle once, however many rooms copy it and however its path is spelled (the
-    100-room benchmark held 100 reads of one room, 0.9 GB); each room is its copy all the same."""
+    100-room benchmark held 100 reads of one room, 0.9 GB); each room is its copy all the same. Unversioned, for a
+    caller that saves it at once, it saves as the same bundle."""
     from cadreg.site import compose
     from cadreg.site.bundle import Site
 
@@ -511,6 +512,11 @@ def test_a_bundle_that_several_rooms_copy_is_read_once(scene0470_site_dir: Path,
     assert [r.id for r in site.regions] == ["a", "b", "c"] and len(site.map) == 3 * len(room.map)
     c = site.regions[2]
     assert np.allclose(site.map.points[c.map_range[0]:c.map_range[1]], room.map.points + [16.0, 0.0, 0.0], atol=1e-4)
+    # left for `save` to version (`site compose` saves at once), the same bundle
+    unversioned = compose.compose_site(layout, tmp_path, versioned=False)
+    assert unversioned.version == ""
+    unversioned.save(tmp_path / "saved")
+    assert load(tmp_path / "saved").version == site.version
 
 
 @pytest.mark.realdata

@@ -18,7 +18,7 @@ def _compose(args: argparse.Namespace) -> int:
     from .site_cmd import compile_site_loops
 
     layout = read_layout(args.layout)
-    site = compose_site(layout, args.layout.parent)
+    site = compose_site(layout, args.layout.parent, versioned=False)
     site.save(args.out)
     compile_site_loops(site)
     counts = site.manifest["counts"]
