@@ -54,6 +54,12 @@ def test_build_labels_only_then_info(scene0470_dir, tmp_path, capsys):
     assert main(["site", "info", str(out), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["site_id"] == "scene0470_00_vh_clean_2" and all(n["source"] == "cluster" for n in info["nodes"])
+    # built again into the folder an auto-CAD build left its alignments in: they are not this site's, and go
+    (out / "auto_cad.scan2cad.json").write_text("[]")
+    assert main(["site", "build", "--scan", str(scene0470_dir / "scene0470_00_vh_clean_2.ply"),
+                 "--labels", str(scene0470_dir / "scene0470_00_vh_clean_2.labels.ply"), "--out", str(out)]) == 0
+    assert not (out / "auto_cad.scan2cad.json").exists()
+    assert "removed" in capsys.readouterr().err
 
 
 def test_errors_name_the_file_and_exit_2(scene0470_dir, scene0470_site_dir, tmp_path, capsys):

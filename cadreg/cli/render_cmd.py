@@ -309,9 +309,9 @@ def _site_fuse(args: argparse.Namespace) -> int:
     compile_site_loops(site)
     report = {"site_id": site.site_id, "version": site.version, "frames": len(indices),
               "points": len(site.map), "nodes": len(site.graph.nodes), "out": str(args.out)}
+    # stdout carries the one JSON report: the auto-CAD lines go to stderr
+    path = write_auto_cad(site, args.out, file=sys.stderr)
     if args.auto_cad:
-        # stdout carries the one JSON report: the auto-CAD lines go to stderr
-        path = write_auto_cad(site, args.out, file=sys.stderr)
         report["auto_cad"] = {"cad_nodes": sum(1 for n in site.graph.nodes if n.source == "cad"),
                               "file": str(path)}
     if check:

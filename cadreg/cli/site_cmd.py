@@ -30,17 +30,21 @@ def _progress_bar(desc: str):
 
 def write_auto_cad(site, out: Path, file=None) -> Path | None:
     """Write the Scan2CAD file of a site built with auto-CAD into its bundle folder and print its notes and what
-    it holds; None (nothing written) for a site built without."""
+    it holds; None (nothing written) for a site built without, whose folder then holds no such file: one left by an
+    earlier build into the folder listed CADs this site does not have, and is removed, saying so."""
     from ..io.scan2cad import write_scan2cad
     from ..site.build import auto_cad_document
 
     doc = auto_cad_document(site)
+    path = Path(out) / AUTO_CAD_FILE
     if doc is None:
+        if path.exists():
+            path.unlink()
+            print(f"removed {path}: an earlier build's automatic alignments, not this site's", file=file or sys.stderr)
         return None
     report = site.manifest["enhance"]["auto_cad"]
     for note in report["notes"]:
         print(f"note: {note}", file=file)
-    path = Path(out) / AUTO_CAD_FILE
     write_scan2cad(path, doc)
     models = doc[0]["aligned_models"]
     n_auto = sum(1 for m in models if m.get("origin") == "auto")
