@@ -194,6 +194,33 @@ def test_after_a_fruitless_search_the_next_waits(localizer: Localizer, recorded:
     assert TrackState.from_dict(lost.to_dict()) == lost
 
 
+def test_poses_tracked_on_after_a_fruitless_search_are_not_ok_until_a_search_agrees(localizer: Localizer,
+                                                                                    recorded: RecordedFrames) -> None:
+    """A frame the session's poses could not track, whose search found nothing, leaves those poses unsure
+    (`TrackState.unsure_s`): a camera carried off on a clock that ran on (RedKitchen 250-299 then 400-459 at 30 Hz)
+    was tracked on from the stale pose onto fits 0.7-1 m off and answered `ok` seven times. What is tracked from them
+    is `uncertain`, with its pose, until TrackConfig.search_interval_s after that search, when a search checks them:
+    one that agrees makes the session sure again."""
+    frame, T_true = recorded.load(FIRST + 3)
+    interval = localizer.config.track.search_interval_s
+    unsure = TrackState((Track(T_true, np.zeros(6), 0.9),), 10.0, confirmed=False, searched_s=10.1, unsure_s=10.1)
+    again = TrackState.from_dict(unsure.to_dict())
+    assert (again.unsure_s, again.searched_s, again.t_s) == (10.1, 10.1, 10.0)
+    tracked = localizer.track(frame, unsure, t_s=10.1 + interval / 2)
+    r = tracked.result
+    assert r.diagnostics.mode == "tracked" and r.status == Status.UNCERTAIN, r.diagnostics.notes
+    assert pose_errors(r.T_map_camera, T_true)[0] < 0.05 and any("until a search agrees" in n for n in r.diagnostics.notes)
+    assert tracked.state.unsure_s == 10.1  # still unsure
+    sure = localizer.track(frame, TrackState(unsure.tracks, 10.0), t_s=10.1 + interval / 2)
+    assert sure.result.status == Status.OK  # the same frame from poses nobody doubts
+    checked = localizer.track(frame, tracked.state, t_s=10.1 + interval + 0.01)
+    r = checked.result
+    assert r.diagnostics.mode == "relocalized" and "refine" in r.diagnostics.stage_ms
+    assert any("checked by a search" in n for n in r.diagnostics.notes)
+    assert r.status == Status.OK and pose_errors(r.T_map_camera, T_true)[0] < 0.05
+    assert checked.state.unsure_s is None
+
+
 def test_without_the_search_lease_a_frame_that_does_not_track_is_not_searched(localizer: Localizer,
                                                                              recorded: RecordedFrames) -> None:
     frame, T_true = recorded.load(FIRST + 40)

@@ -87,17 +87,22 @@ class TrackState:
     """What a session keeps between frames: hypotheses best first, the time of the last accepted frame (t_s,
     seconds, the runner's clock), and `confirmed` = the poses were accepted by tracking (False right after a
     relocalization that jumped: the next tracked frame confirms it). A session whose global search found nothing
-    keeps its tracks (or none) and the time of that search, `searched_s`."""
+    keeps its tracks (or none) and the time of that search, `searched_s`. `unsure_s`: the time of the last search
+    that found nothing after a frame the tracks it keeps could not track, while the session tracks on from them (None:
+    no such doubt): they may be stale (the camera carried off), and what is tracked from them is not `ok` until a
+    search, TrackConfig.search_interval_s later, agrees (`track_frame`)."""
 
     tracks: tuple[Track, ...]
     t_s: float
     confirmed: bool = True
     searched_s: float | None = None  # time of the last global search that found no pose (None: none since)
+    unsure_s: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able form (lists of floats): what a runner stores and hands back."""
         return {"t_s": float(self.t_s), "confirmed": bool(self.confirmed),
                 "searched_s": None if self.searched_s is None else float(self.searched_s),
+                "unsure_s": None if self.unsure_s is None else float(self.unsure_s),
                 "tracks": [{"T_map_camera": np.asarray(t.T_map_camera, dtype=float).tolist(),
                             "velocity": np.asarray(t.velocity, dtype=float).tolist(), "fitness": float(t.fitness)}
                            for t in self.tracks]}
@@ -109,9 +114,9 @@ class TrackState:
             tracks = tuple(Track(np.asarray(t["T_map_camera"], dtype=np.float64).reshape(4, 4),
                                  np.asarray(t["velocity"], dtype=np.float64).reshape(6), float(t["fitness"]))
                            for t in doc["tracks"])
-            searched = doc.get("searched_s")
+            searched, unsure = doc.get("searched_s"), doc.get("unsure_s")
             return cls(tracks, float(doc["t_s"]), bool(doc.get("confirmed", True)),
-                       None if searched is None else float(searched))
+                       None if searched is None else float(searched), None if unsure is None else float(unsure))
         except (KeyError, TypeError, ValueError) as exc:
             raise InvalidArgument(f"not a tracking state: {exc}") from None
 
@@ -174,6 +179,9 @@ def track_frame(localizer: "Localizer", frame: Frame, state: TrackState | None, 
     if dt_s > cfg.max_gap_s:
         return search(localizer, frame, state, predictions[0], t_s, top_k, "relocalized",
                        [f"{dt_s:.2f} s since the last accepted frame (more than {cfg.max_gap_s:g} s): not tracked"])
+    if state.unsure_s is not None and t_s - state.unsure_s >= cfg.search_interval_s:
+        return search(localizer, frame, state, predictions[0], t_s, top_k, "relocalized",
+                      ["the poses tracked since a frame no search could place are checked by a search"])
     frame.validate()
     diag = Diagnostics(site_id=localizer.site.site_id, bundle_version=localizer.site.version, mode="tracked")
     timer = StageTimer(diag.stage_ms)
@@ -322,7 +330,7 @@ def _tracked_result(localizer: "Localizer", frame: Frame, state: TrackState, kep
         diag.notes.append(f"fitness {best.fitness:.2f} below {cfg.min_fitness:g}: following the motion, no pose answered")
         result = LocalizationResult(Status.LOW_OVERLAP, None, confidence=low_overlap_confidence(best.fitness),
                                     hypotheses=hypotheses, diagnostics=diag, frame_id=frame.frame_id)
-        return Tracked(result, TrackState(tracks, t_s, confirmed=state.confirmed))
+        return Tracked(result, TrackState(tracks, t_s, confirmed=state.confirmed, unsure_s=state.unsure_s))
     status = Status.OK if len(kept) == 1 else Status.AMBIGUOUS
     if len(kept) > 1:
         diag.notes.append(f"{len(kept)} hypotheses still fit (fitness " + ", ".join(f"{o.fitness:.3f}" for o in kept)
@@ -339,6 +347,15 @@ def _tracked_result(localizer: "Localizer", frame: Frame, state: TrackState, kep
         status = Status.UNCERTAIN
         diag.notes.append(f"the frame lets the tracked pose slide {slide * 1000:.1f} mm (more than "
                           f"{mc.max_pose_std_m * 1000:g} mm): uncertain, the session follows it")
+    elif status == Status.OK and state.unsure_s is not None:
+        # Tracked on from the poses the session held before a frame that could not be tracked, and that a search
+        # could not place either: the camera may have been carried off (a kidnap on a clock that ran on), and the
+        # poses be stale. RedKitchen frames 250-299 then 400-459 at 30 Hz: frame 400 failed (a correction of 11 cm
+        # / 9.5°), its search found nothing, frame 405 tracked from frame 299's pose onto a fit 1 m from the truth,
+        # and the session followed it, `ok` at 0.50-0.55 on seven frames 0.7-1 m off. Not `ok` until a search agrees.
+        status = Status.UNCERTAIN
+        diag.notes.append("tracked on from the poses held before a frame no search could place: uncertain until a "
+                          "search agrees")
     elif status == Status.OK and trust < mc.min_ok_confidence:
         # a search's rule too (`stages.answer_status`): on 7-Scenes the tracked poses below it (0.35-0.47, with
         # 0.40-0.52 of the frame on the map) were 5-10 cm off where the session tracked back in from the map's edge
@@ -346,7 +363,7 @@ def _tracked_result(localizer: "Localizer", frame: Frame, state: TrackState, kep
         diag.notes.append(f"confidence {trust:.2f} below {mc.min_ok_confidence:g}: uncertain, the session follows it")
     result = LocalizationResult(status, best.T_map_camera, confidence=trust, covariance=best.covariance,
                                 hypotheses=hypotheses, diagnostics=diag, frame_id=frame.frame_id)
-    return Tracked(result, TrackState(tracks, t_s, confirmed=True))
+    return Tracked(result, TrackState(tracks, t_s, confirmed=True, unsure_s=state.unsure_s))
 
 
 def _deferred(localizer: "Localizer", frame: Frame, state: TrackState, t_s: float, mode: str,
@@ -387,10 +404,12 @@ def _global(localizer: "Localizer", frame: Frame, state: TrackState | None, pred
     diag.mode = mode
     diag.notes[:0] = notes
     if result.status not in (Status.OK, Status.AMBIGUOUS) or result.T_map_camera is None:
-        # nothing learnt: the session keeps what it had (its gap grows) and waits before it searches again
+        # nothing learnt: the session keeps what it had (its gap grows) and waits before it searches again; what
+        # it tracks on from them is unsure (`TrackState.unsure_s`)
         kept = state.tracks if state is not None else ()
         t_kept = state.t_s if state is not None else t_s
-        return Tracked(result, TrackState(kept, t_kept, confirmed=False, searched_s=t_s))
+        return Tracked(result, TrackState(kept, t_kept, confirmed=False, searched_s=t_s,
+                                          unsure_s=t_s if kept else None))
     T = np.asarray(result.T_map_camera)
     tracks = [Track(T, np.zeros(6), result.diagnostics.refinement.fitness if result.diagnostics.refinement else 0.0)]
     if result.status == Status.AMBIGUOUS:
