@@ -93,7 +93,8 @@ def _facing_inward(scan: ScanPoints) -> ScanPoints:
     inward = outward = 0
     for axis in range(3):
         along = np.abs(n[:, axis]) > 0.9
-        for side, into in ((xyz[:, axis] <= lo[axis] + SIDE_BAND_M, 1.0), (xyz[:, axis] >= hi[axis] - SIDE_BAND_M, -1.0)):
+        sides = ((xyz[:, axis] <= lo[axis] + SIDE_BAND_M, 1.0), (xyz[:, axis] >= hi[axis] - SIDE_BAND_M, -1.0))
+        for side, into in sides:
             facing = n[along & side, axis] * into
             inward += int(np.count_nonzero(facing > 0))
             outward += int(np.count_nonzero(facing < 0))
@@ -126,10 +127,11 @@ def _check_annotation_fits(fits: list[dict[str, Any]], inputs: dict[str, Any]) -
            and f["median_distance_to_scan_m"] > MAX_ANNOTATION_MEDIAN_M]
     if off:
         listed = ", ".join(f"{f['id']} ({f['cad_id']}) {100 * f['median_distance_to_scan_m']:.0f} cm" for f in off)
-        raise InvalidFileError(inputs["scan2cad"]["path"], f"{len(off)} of the {len(fits)} CAD models it aligns lie "
-                               f"farther than {100 * MAX_ANNOTATION_MEDIAN_M:.0f} cm from the scan (the median distance "
-                               f"of their surfaces; a fitting alignment lies within a few cm): {listed}. Is it the "
-                               "annotation of another scan, or of this one in another frame (z up, metres)?")
+        raise InvalidFileError(inputs["scan2cad"]["path"],
+                               f"{len(off)} of the {len(fits)} CAD models it aligns lie farther than "
+                               f"{100 * MAX_ANNOTATION_MEDIAN_M:.0f} cm from the scan (the median distance of their "
+                               f"surfaces; a fitting alignment lies within a few cm): {listed}. Is it the annotation "
+                               "of another scan, or of this one in another frame (z up, metres)?")
 
 
 def _stage(progress: Progress | None, base: int, span: int, total: int) -> Progress | None:

@@ -36,8 +36,8 @@ import numpy as np
 
 from ..config import GraphConfig
 from ..errors import BundleIntegrityError, ConfigError, InvalidFileError, InvalidFrame
-from ..io.bundle_files import (BundleWriter, FileStamp, file_stamp, map_npy, npy_bytes, read_bytes, read_json, sha256_bytes,
-                                sha256_file)
+from ..io.bundle_files import (BundleWriter, FileStamp, file_stamp, map_npy, npy_bytes, read_bytes, read_json,
+                                sha256_bytes, sha256_file)
 from ..io.ply import release_pages
 from ..labels import labels_to_class_index
 from ..pointset import MappedRows, PointSet

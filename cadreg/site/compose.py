@@ -275,7 +275,8 @@ def compose_site(layout: Layout, root: str | Path, *, versioned: bool = True) ->
     """The building site of `layout` (bundle paths relative to `root`). Rooms must share their classes and label
     maps (the same label set and class names): ConfigError otherwise, and for a dropped or moved id a room does not
     have. versioned False: its version and manifest are left for `Site.save` to make, for a caller that saves it at
-    once (`site compose`: encoding and hashing a 100-room building's files took 1.7 s of its 33 s, and `save` does it)."""
+    once (`site compose`: encoding and hashing a 100-room building's files took 1.7 s of its 33 s, and `save` does
+    it)."""
     root = Path(root)
     # Each bundle read once, however many rooms copy it (the 100-room benchmark held 100 reads of one, 0.9 GB).
     bundles: dict[Path, Site] = {}
