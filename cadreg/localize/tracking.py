@@ -11,7 +11,8 @@ stages:
                 off than the fine step reaches; the site's small_gicp maps, built once in
                 `Localizer.from_site`); accepted when the correction stays within what the camera can move in
                 the time since the state (`correction_limits`: the motion agrees) and the fitness holds;
-                hypotheses that fall behind the best are pruned
+                hypotheses that fall behind the best are pruned; the best, where the frame lies on the map, is
+                polished by the search's own refinement (`_polished`)
     result      `tracked`: ok once a single hypothesis remains, the frame pins it (its ICP covariance lets it slide
                 at most the search's MatchConfig.max_pose_std_m) and its confidence reaches the search's
                 MatchConfig.min_ok_confidence (uncertain otherwise, the session follows it), ambiguous while several
@@ -88,8 +89,9 @@ class TrackState:
     seconds, the runner's clock), and `confirmed` = the poses were accepted by tracking (False right after a
     relocalization that jumped: the next tracked frame confirms it). A session whose global search found nothing
     keeps its tracks (or none) and the time of that search, `searched_s`. `unsure_s`: the time of the last search
-    that found nothing after a frame the tracks it keeps could not track, while the session tracks on from them (None:
-    no such doubt): they may be stale (the camera carried off), and what is tracked from them is not `ok` until a
+    that found nothing after a frame the tracks it keeps could not track, while the session tracks on from them, or of
+    the frame whose tracking alone dropped all but one of the places the session held (None: no such doubt): they
+    may be stale (the camera carried off) or a copy of the room, and what is tracked from them is not `ok` until a
     search, TrackConfig.search_interval_s later, agrees (`track_frame`)."""
 
     tracks: tuple[Track, ...]
@@ -191,7 +193,10 @@ def track_frame(localizer: "Localizer", frame: Frame, state: TrackState | None, 
     with timer("track"):
         limits = correction_limits(cfg, dt_s)
         outcomes = [_refine(localizer, points, check_xyz, tr, T, limits) for tr, T in zip(state.tracks, predictions)]
-    accepted = [o for o in outcomes if o.accepted]
+        accepted = [o for o in outcomes if o.accepted]
+        kept = _prune(localizer, accepted, cfg.clear_margin, cfg.max_hypotheses)
+        if kept and kept[0].on_map:
+            kept[0] = _polished(localizer, points, check_xyz, kept[0], limits)
     if not accepted:
         best = max(outcomes, key=lambda o: o.fitness)
         why = (f"tracking failed: fitness {best.fitness:.2f} (min {cfg.coast_fitness:g}), correction "
@@ -205,8 +210,8 @@ def track_frame(localizer: "Localizer", frame: Frame, state: TrackState | None, 
         for k in ("points", "track"):
             tracked.result.diagnostics.stage_ms[f"{k}_tried"] = diag.stage_ms[k]
         return tracked
-    kept = _prune(localizer, accepted, cfg.clear_margin, cfg.max_hypotheses)
-    return _tracked_result(localizer, frame, state, kept, dt_s, t_s, center_camera, len(points), diag, top_k)
+    return _tracked_result(localizer, frame, state, outcomes, kept, dt_s, t_s, center_camera, len(points), diag,
+                           top_k)
 
 
 # --- stages -----------------------------------------------------------------------------------------------------
@@ -278,13 +283,44 @@ def _fine(localizer: "Localizer", rm: RefineMap, fine: small_gicp.PointCloud, ch
                            max_correspondence_distance=cfg.fine_correspondence_m, num_threads=1,
                            max_iterations=cfg.fine_iterations, translation_epsilon=rc.epsilon,
                            rotation_epsilon=rc.epsilon)
-    T = np.asarray(res.T_target_source)
+    covariance = covariance_from_hessian(np.asarray(res.H), 2.0 * float(res.error), int(res.num_inliers),
+                                         residuals_per_inlier=1)
+    return _judged(localizer, rm, check_xyz, prior, predicted, np.asarray(res.T_target_source), int(res.iterations),
+                   bool(res.converged), covariance, limits)
+
+
+def _polished(localizer: "Localizer", points: FramePoints, check_xyz: np.ndarray, out: _Outcome,
+              limits: tuple[float, float]) -> _Outcome:
+    """The tracked pose refined as a search refines its answer (`RefineStage._refine_one`: GICP on the map of the
+    pose's region), when the motion still agrees and the frame still lies on the map there; else `out` as it is.
+
+    The point-to-plane ICP tracks (cheap, and on real frames it keeps hold of a stream where GICP from the
+    prediction lost it: RedKitchen at 30 Hz, 6 -> 31 relocalizations), but it settles where the frame's points lie
+    closest to the map's planes, which is not where the map's edges and furniture say: on four walks through the
+    10-room building (`cadreg render --walk 0.05`) 16 of 281 tracked `ok` answers were 5-9 cm and up to 3.6° off,
+    confidence 0.7-0.93, where the search's refinement from the same pose came back within 0.6-3.2 cm. Polished:
+    1 of 340; the tracked `ok` poses of eight scene0470 walks 0.9-1.9 -> 0.2-0.5 cm at the
+    90th percentile, real RedKitchen frames against the map fused from 250-499, 2.5 -> 2.0 cm at the median.
+    The ICP's covariance stays the pose's: the slide rule of `_tracked_result` was set on it, and GICP's
+    plane-shaped covariances make it certain along planes (`Localizer._slides`)."""
+    rm = localizer.maps_at(out.T_map_camera, points.xyz.mean(axis=0)).refine_map
+    ref = localizer._refine_one(rm, points, out.T_map_camera, "small_gicp")
+    polished = _judged(localizer, rm, check_xyz, out.prior, out.predicted, ref.T_map_camera,
+                       out.iterations + ref.iterations, ref.converged, out.covariance, limits)
+    return polished if polished.on_map else out
+
+
+def _judged(localizer: "Localizer", rm: RefineMap, check_xyz: np.ndarray, prior: Track, predicted: np.ndarray,
+            T: np.ndarray, iterations: int, converged: bool, covariance: np.ndarray | None,
+            limits: tuple[float, float]) -> _Outcome:
+    """The outcome of refining `predicted` to T: its fitness on the map, the correction it made, and whether that
+    is accepted (the motion agrees and at least TrackConfig.coast_fitness of the frame lies on the map) and on the
+    map (at least min_fitness)."""
+    cfg, rc = localizer.config.track, localizer.config.refine
     fitness, rmse = rm.fitness(transform_points(T, check_xyz), inlier_m=rc.inlier_m)
     delta = np.linalg.inv(predicted) @ T
     out = _Outcome(prior, predicted, T, fitness, rmse, float(np.linalg.norm(T[:3, 3] - predicted[:3, 3])),
-                   rotation_angle_deg(delta[:3, :3]), int(res.iterations), bool(res.converged),
-                   covariance_from_hessian(np.asarray(res.H), 2.0 * float(res.error), int(res.num_inliers),
-                                           residuals_per_inlier=1))
+                   rotation_angle_deg(delta[:3, :3]), iterations, converged, covariance)
     out.accepted = fitness >= cfg.coast_fitness and out.correction_m <= limits[0] and out.correction_deg <= limits[1]
     out.on_map = out.accepted and fitness >= cfg.min_fitness
     return out
@@ -305,11 +341,18 @@ def _prune(localizer: "Localizer", accepted: list[_Outcome], margin: float, coun
     return kept
 
 
-def _tracked_result(localizer: "Localizer", frame: Frame, state: TrackState, kept: list[_Outcome], dt_s: float,
-                    t_s: float, center_camera: np.ndarray, frame_points: int, diag: Diagnostics,
-                    top_k: int | None) -> Tracked:
+def _tracked_result(localizer: "Localizer", frame: Frame, state: TrackState, outcomes: list[_Outcome],
+                    kept: list[_Outcome], dt_s: float, t_s: float, center_camera: np.ndarray, frame_points: int,
+                    diag: Diagnostics, top_k: int | None) -> Tracked:
     cfg, mc, rc = localizer.config.track, localizer.config.match, localizer.config.refine
     best = kept[0]
+    # Tracking alone told the session's places apart: the poses it held are now one, a rival the frame still fits
+    # dropped (fell behind, or its correction went past the motion's bounds), not merged into it. A few hundredths
+    # of fitness is thin evidence between the copies of a room: on a walk through the 10-room building (`cadreg render --walk 0.05 --seed 1`) the session
+    # held two copies 4.6 and 13.9 m from the truth, dropped one, and answered the other `ok` at 0.84. Like poses
+    # tracked on after a fruitless search: not `ok` until a search agrees (`TrackState.unsure_s`).
+    told_apart = len(state.tracks) > 1 and len(kept) == 1 and _dropped_rivals(localizer, outcomes, best)
+    unsure_s = t_s if told_apart and state.unsure_s is None else state.unsure_s
     rival = kept[1].fitness if len(kept) > 1 else 0.0
     diag.method = "track"
     diag.refinement = Refinement(method="small_gicp", iterations=best.iterations, fitness=best.fitness,
@@ -330,7 +373,7 @@ def _tracked_result(localizer: "Localizer", frame: Frame, state: TrackState, kep
         diag.notes.append(f"fitness {best.fitness:.2f} below {cfg.min_fitness:g}: following the motion, no pose answered")
         result = LocalizationResult(Status.LOW_OVERLAP, None, confidence=low_overlap_confidence(best.fitness),
                                     hypotheses=hypotheses, diagnostics=diag, frame_id=frame.frame_id)
-        return Tracked(result, TrackState(tracks, t_s, confirmed=state.confirmed, unsure_s=state.unsure_s))
+        return Tracked(result, TrackState(tracks, t_s, confirmed=state.confirmed, unsure_s=unsure_s))
     status = Status.OK if len(kept) == 1 else Status.AMBIGUOUS
     if len(kept) > 1:
         diag.notes.append(f"{len(kept)} hypotheses still fit (fitness " + ", ".join(f"{o.fitness:.3f}" for o in kept)
@@ -347,15 +390,16 @@ def _tracked_result(localizer: "Localizer", frame: Frame, state: TrackState, kep
         status = Status.UNCERTAIN
         diag.notes.append(f"the frame lets the tracked pose slide {slide * 1000:.1f} mm (more than "
                           f"{mc.max_pose_std_m * 1000:g} mm): uncertain, the session follows it")
-    elif status == Status.OK and state.unsure_s is not None:
+    elif status == Status.OK and unsure_s is not None:
         # Tracked on from the poses the session held before a frame that could not be tracked, and that a search
         # could not place either: the camera may have been carried off (a kidnap on a clock that ran on), and the
         # poses be stale. RedKitchen frames 250-299 then 400-459 at 30 Hz: frame 400 failed (a correction of 11 cm
         # / 9.5°), its search found nothing, frame 405 tracked from frame 299's pose onto a fit 1 m from the truth,
-        # and the session followed it, `ok` at 0.50-0.55 on seven frames 0.7-1 m off. Not `ok` until a search agrees.
+        # and the session followed it, `ok` at 0.50-0.55 on seven frames 0.7-1 m off. Or one of several places
+        # the session held, the others dropped by tracking alone (`told_apart`). Not `ok` until a search agrees.
         status = Status.UNCERTAIN
-        diag.notes.append("tracked on from the poses held before a frame no search could place: uncertain until a "
-                          "search agrees")
+        diag.notes.append("the session's pose is unsure (tracked on past a frame no search could place, or told "
+                          "from its rivals by tracking alone): uncertain until a search agrees")
     elif status == Status.OK and trust < mc.min_ok_confidence:
         # a search's rule too (`stages.answer_status`): on 7-Scenes the tracked poses below it (0.35-0.47, with
         # 0.40-0.52 of the frame on the map) were 5-10 cm off where the session tracked back in from the map's edge
@@ -363,7 +407,16 @@ def _tracked_result(localizer: "Localizer", frame: Frame, state: TrackState, kep
         diag.notes.append(f"confidence {trust:.2f} below {mc.min_ok_confidence:g}: uncertain, the session follows it")
     result = LocalizationResult(status, best.T_map_camera, confidence=trust, covariance=best.covariance,
                                 hypotheses=hypotheses, diagnostics=diag, frame_id=frame.frame_id)
-    return Tracked(result, TrackState(tracks, t_s, confirmed=True, unsure_s=state.unsure_s))
+    return Tracked(result, TrackState(tracks, t_s, confirmed=True, unsure_s=unsure_s))
+
+
+def _dropped_rivals(localizer: "Localizer", outcomes: list[_Outcome], kept: _Outcome) -> bool:
+    """Whether a hypothesis the session followed ended this frame elsewhere than `kept` (distinct from it: dropped
+    rather than converged onto it) where the frame still lies on the map (at least TrackConfig.min_fitness of it:
+    not refuted, as a place the frame does not fit is when the session jumps, `_global`)."""
+    cfg = localizer.config.track
+    return any(o.fitness >= cfg.min_fitness and localizer._distinct(o.T_map_camera, kept.T_map_camera)
+               for o in outcomes if o is not kept)
 
 
 def _deferred(localizer: "Localizer", frame: Frame, state: TrackState, t_s: float, mode: str,
