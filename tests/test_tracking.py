@@ -132,6 +132,24 @@ def test_a_wrong_hypothesis_is_pruned_and_the_right_one_answers(localizer: Local
     assert len(twice.state.tracks) == 1 and twice.result.status == Status.OK
 
 
+def test_a_polish_the_motion_does_not_allow_leaves_the_tracked_pose(localizer: Localizer,
+                                                                    recorded: RecordedFrames) -> None:
+    """The search's refinement polishes an accepted tracked pose (`tracking._polished`) only within the motion's
+    bounds: with none left, the ICP's own outcome stands."""
+    from cadreg.localize import tracking
+
+    frame, T_true = recorded.load(FIRST + 10)
+    points, center, check = tracking._track_points(localizer, frame)
+    predicted = T_true @ make_T(t=np.array([0.02, 0.0, 0.0]))
+    limits = (0.1, 6.0)
+    out = tracking._refine(localizer, points, check, Track(predicted, np.zeros(6), 0.9), predicted, limits)
+    assert out.on_map
+    polished = tracking._polished(localizer, points, center, check, out, limits)
+    assert polished is not out and polished.on_map and polished.covariance is out.covariance
+    assert pose_errors(polished.T_map_camera, T_true)[0] < 0.05
+    assert tracking._polished(localizer, points, center, check, out, (1e-6, 1e-6)) is out
+
+
 def test_state_round_trips_its_plain_form_and_refuses_junk() -> None:
     T = make_T(t=np.array([1.0, 2.0, 3.0]))
     state = TrackState((Track(T, np.arange(6, dtype=float), 0.75),), 12.5, confirmed=False)

@@ -115,8 +115,8 @@ def test_a_stream_from_a_repeated_view_ends_in_the_right_room(twin_dir: Path, tu
     assert all(s == Status.OK for s in statuses[switch:])
 
 
-# A camera turning in place in room a (`cadreg render --site <the twin site> --walk 0.05 --seed 11`, frames 88 and
-# 89, rendered from the building's mesh).
+# A camera turning in place in room a: the true poses of frames 88 and 89 of `cadreg render --site <the twin site>
+# --walk 0.05 --seed 11` (rendered there from the building's mesh; here from the scene0470 mesh, which is room a).
 TURN_FROM = np.array([[0.829133489766, 0.116510265082, -0.546775103932, 2.884747739662],
                       [0.555636992563, -0.279660515106, 0.782979903181, 1.908307183125],
                       [-0.061686211139, -0.953003333898, -0.296613312133, 1.558469207777],

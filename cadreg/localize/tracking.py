@@ -145,6 +145,7 @@ class _Outcome:
     iterations: int
     converged: bool
     covariance: np.ndarray | None
+    method: str = "small_gicp"  # what refined it last: small_gicp's point-to-plane ICP, or the search's refinement
     accepted: bool = False  # the motion agrees and the fitness is at least coast_fitness
     on_map: bool = False  # ... and at least min_fitness: a pose to answer
 
@@ -195,8 +196,9 @@ def track_frame(localizer: "Localizer", frame: Frame, state: TrackState | None, 
         outcomes = [_refine(localizer, points, check_xyz, tr, T, limits) for tr, T in zip(state.tracks, predictions)]
         accepted = [o for o in outcomes if o.accepted]
         kept = _prune(localizer, accepted, cfg.clear_margin, cfg.max_hypotheses)
-        if kept and kept[0].on_map:
-            kept[0] = _polished(localizer, points, check_xyz, kept[0], limits)
+        if len(kept) == 1 and kept[0].on_map:
+            # (an ambiguous answer is not claimed: its hypotheses are told apart by the ICP's fitness alone)
+            kept[0] = _polished(localizer, points, center_camera, check_xyz, kept[0], limits)
     if not accepted:
         best = max(outcomes, key=lambda o: o.fitness)
         why = (f"tracking failed: fitness {best.fitness:.2f} (min {cfg.coast_fitness:g}), correction "
@@ -289,8 +291,8 @@ def _fine(localizer: "Localizer", rm: RefineMap, fine: small_gicp.PointCloud, ch
                    bool(res.converged), covariance, limits)
 
 
-def _polished(localizer: "Localizer", points: FramePoints, check_xyz: np.ndarray, out: _Outcome,
-              limits: tuple[float, float]) -> _Outcome:
+def _polished(localizer: "Localizer", points: FramePoints, center_camera: np.ndarray, check_xyz: np.ndarray,
+              out: _Outcome, limits: tuple[float, float]) -> _Outcome:
     """The tracked pose refined as a search refines its answer (`RefineStage._refine_one`: GICP on the map of the
     pose's region), when the motion still agrees and the frame still lies on the map there; else `out` as it is.
 
@@ -298,15 +300,20 @@ def _polished(localizer: "Localizer", points: FramePoints, check_xyz: np.ndarray
     prediction lost it: RedKitchen at 30 Hz, 6 -> 31 relocalizations), but it settles where the frame's points lie
     closest to the map's planes, which is not where the map's edges and furniture say: on four walks through the
     10-room building (`cadreg render --walk 0.05`) 16 of 281 tracked `ok` answers were 5-9 cm and up to 3.6° off,
-    confidence 0.7-0.93, where the search's refinement from the same pose came back within 0.6-3.2 cm. Polished:
-    1 of 340; the tracked `ok` poses of eight scene0470 walks 0.9-1.9 -> 0.2-0.5 cm at the
-    90th percentile, real RedKitchen frames against the map fused from 250-499, 2.5 -> 2.0 cm at the median.
+    confidence 0.7-0.93, where the search's refinement from the same pose came back within 0.6-3.2 cm. Polished
+    (and with `_tracked_result`'s rule for copies told apart): none of 316; the tracked `ok` poses of eight
+    scene0470 walks 0.3-1.9 -> 0.1-0.5 cm at the 90th percentile; real RedKitchen frames against the map fused from
+    250-499, 2.5 -> 2.0 cm at the median.
     The ICP's covariance stays the pose's: the slide rule of `_tracked_result` was set on it, and GICP's
-    plane-shaped covariances make it certain along planes (`Localizer._slides`)."""
-    rm = localizer.maps_at(out.T_map_camera, points.xyz.mean(axis=0)).refine_map
+    plane-shaped covariances make it certain along planes (`Localizer._slides`). No fitness guard as the search's
+    `_unslid` has: the ICP's pose is where most of the frame lies within the inlier distance, and the right pose can
+    fit less (walk frame 42 above: 0.985 at the ICP's pose 5.9 cm off, 0.963 at the truth); the motion's bounds hold
+    the polish to where the camera can be."""
+    rm = localizer.maps_at(out.T_map_camera, center_camera).refine_map
     ref = localizer._refine_one(rm, points, out.T_map_camera, "small_gicp")
     polished = _judged(localizer, rm, check_xyz, out.prior, out.predicted, ref.T_map_camera,
                        out.iterations + ref.iterations, ref.converged, out.covariance, limits)
+    polished.method = ref.method
     return polished if polished.on_map else out
 
 
@@ -348,14 +355,15 @@ def _tracked_result(localizer: "Localizer", frame: Frame, state: TrackState, out
     best = kept[0]
     # Tracking alone told the session's places apart: the poses it held are now one, a rival the frame still fits
     # dropped (fell behind, or its correction went past the motion's bounds), not merged into it. A few hundredths
-    # of fitness is thin evidence between the copies of a room: on a walk through the 10-room building (`cadreg render --walk 0.05 --seed 1`) the session
-    # held two copies 4.6 and 13.9 m from the truth, dropped one, and answered the other `ok` at 0.84. Like poses
-    # tracked on after a fruitless search: not `ok` until a search agrees (`TrackState.unsure_s`).
+    # of fitness is thin evidence between the copies of a room: on a walk through the 10-room building (`cadreg
+    # render --walk 0.05 --seed 1`) the session held two copies 4.6 and 13.9 m from the truth, dropped one, and
+    # answered the other `ok` 13.9 m off at 0.84. Like poses tracked on after a fruitless search: not `ok` until a
+    # search agrees (`TrackState.unsure_s`).
     told_apart = len(state.tracks) > 1 and len(kept) == 1 and _dropped_rivals(localizer, outcomes, best)
     unsure_s = t_s if told_apart and state.unsure_s is None else state.unsure_s
     rival = kept[1].fitness if len(kept) > 1 else 0.0
     diag.method = "track"
-    diag.refinement = Refinement(method="small_gicp", iterations=best.iterations, fitness=best.fitness,
+    diag.refinement = Refinement(method=best.method, iterations=best.iterations, fitness=best.fitness,
                                  inlier_rmse_m=best.rmse_m, converged=best.converged)
     center = transform_points(best.T_map_camera, center_camera[None])[0]
     diag.roi = Roi(center.tolist(), rc.roi_radius_m, localizer.maps_at(best.T_map_camera, center_camera).refine_map.roi_count(
@@ -416,7 +424,7 @@ def _dropped_rivals(localizer: "Localizer", outcomes: list[_Outcome], kept: _Out
     not refuted, as a place the frame does not fit is when the session jumps, `_global`)."""
     cfg = localizer.config.track
     return any(o.fitness >= cfg.min_fitness and localizer._distinct(o.T_map_camera, kept.T_map_camera)
-               for o in outcomes if o is not kept)
+               for o in outcomes if o.prior is not kept.prior)  # (kept may be its own outcome polished)
 
 
 def _deferred(localizer: "Localizer", frame: Frame, state: TrackState, t_s: float, mode: str,
