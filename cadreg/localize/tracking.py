@@ -11,7 +11,7 @@ stages:
                 off than the fine step reaches; the site's small_gicp maps, built once in
                 `Localizer.from_site`); accepted when the correction stays within what the camera can move in
                 the time since the state (`correction_limits`: the motion agrees) and the fitness holds;
-                hypotheses that fall behind the best are pruned; the best, where the frame lies on the map, is
+                hypotheses that fall behind the best are pruned; one left, where the frame lies on the map, is
                 polished by the search's own refinement (`_polished`)
     result      `tracked`: ok once a single hypothesis remains, the frame pins it (its ICP covariance lets it slide
                 at most the search's MatchConfig.max_pose_std_m) and its confidence reaches the search's
