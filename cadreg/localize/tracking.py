@@ -16,8 +16,9 @@ stages:
     result      `tracked`: ok once a single hypothesis remains, the frame pins it (its ICP covariance lets it slide
                 at most the search's MatchConfig.max_pose_std_m) and its confidence reaches the search's
                 MatchConfig.min_ok_confidence (uncertain otherwise, the session follows it), ambiguous while several
-                remain; low_overlap (no pose, the session follows on) while the camera looks past the map's edge
-                (TrackConfig.coast_fitness)
+                remain, uncertain after tracking alone dropped the others until a search agrees
+                (`TrackState.unsure_s`); low_overlap (no pose, the session follows on) while the camera looks past
+                the map's edge (TrackConfig.coast_fitness)
     global      nothing accepted, no live state or a gap longer than TrackConfig.max_gap_s: the whole localizer,
                 with the best prediction as a prior (`relocalized`), or from nothing (`global`); after a search
                 that found nothing, the next waits TrackConfig.search_interval_s (no_match at once meanwhile);
