@@ -150,6 +150,36 @@ def test_a_polish_the_motion_does_not_allow_leaves_the_tracked_pose(localizer: L
     assert tracking._polished(localizer, points, center, check, out, (1e-6, 1e-6)) is out
 
 
+def test_hypotheses_are_told_apart_only_on_the_map(localizer: Localizer) -> None:
+    """`tracking._prune` drops a hypothesis that fell `clear_margin` behind only while the best lies on the map; a
+    rival dropped where the frame still fits (or where neither fits) leaves the session unsure
+    (`tracking._dropped_rivals`), one the frame does not fit where it fits the kept one does not."""
+    from cadreg.localize import tracking
+
+    cfg = localizer.config.track
+
+    def outcome(x_m: float, fitness: float) -> tracking._Outcome:
+        T = make_T(t=np.array([x_m, 0.0, 0.0]))
+        o = tracking._Outcome(Track(T, np.zeros(6), fitness), T, T, fitness, 0.01, 0.0, 0.0, 1, True, None)
+        o.accepted, o.on_map = True, fitness >= cfg.min_fitness
+        return o
+
+    # looking past the map's edge (two copies of a room 6 m apart): both kept, however far one falls behind
+    edge = [outcome(0.0, 0.21), outcome(6.0, 0.15)]
+    assert len(tracking._prune(localizer, edge, cfg.clear_margin, cfg.max_hypotheses)) == 2
+    # on the map: the one behind is dropped ...
+    on = [outcome(0.0, 0.95), outcome(6.0, 0.85)]
+    kept = tracking._prune(localizer, on, cfg.clear_margin, cfg.max_hypotheses)
+    assert kept == [on[0]]
+    # ... and the session is unsure of the one left: the frame fits the other place too
+    assert tracking._dropped_rivals(localizer, on, kept[0])
+    # a rival the frame does not fit, where it fits the kept one, is refuted: no doubt
+    refuted = [outcome(0.0, 0.95), outcome(6.0, 0.2)]
+    assert not tracking._dropped_rivals(localizer, refuted, refuted[0])
+    # where neither fits, dropping one would be no evidence
+    assert tracking._dropped_rivals(localizer, edge, edge[0])
+
+
 def test_state_round_trips_its_plain_form_and_refuses_junk() -> None:
     T = make_T(t=np.array([1.0, 2.0, 3.0]))
     state = TrackState((Track(T, np.arange(6, dtype=float), 0.75),), 12.5, confirmed=False)

@@ -95,6 +95,9 @@ def test_a_stream_from_a_repeated_view_ends_in_the_right_room(twin_dir: Path, tu
     # the shared view: both rooms fit, the session keeps both and does not claim one
     assert first.status == Status.AMBIGUOUS and answers[0][2] == 2
     assert {_room(h.T_map_camera) for h in first.hypotheses} == {"a", "b"}
+    # a tracked answer's hypotheses name their room, as a search's do
+    tracked = [h for r, _, _ in answers if r.diagnostics.mode == "tracked" for h in r.hypotheses]
+    assert tracked and all(h.region == _room(h.T_map_camera) for h in tracked)
     oks = [(r, T) for r, T, _ in answers if r.status == Status.OK]
     assert oks, "the stream never became sure"
     for r, T in oks:  # never an ok in the wrong room, never an ok off the truth
