@@ -359,7 +359,7 @@ def _tracked_result(localizer: "Localizer", frame: Frame, state: TrackState, out
                     diag: Diagnostics, top_k: int | None) -> Tracked:
     cfg, mc, rc = localizer.config.track, localizer.config.match, localizer.config.refine
     best = kept[0]
-    # Tracking alone told the session's places apart: the poses it held are now one, a rival the frame still fits
+    # Tracking alone told the session's places apart: the poses it held are now one, a rival the frame did not refute
     # dropped (fell behind, or its correction went past the motion's bounds), not merged into it. A few hundredths
     # of fitness is thin evidence between the copies of a room: on a walk through the 10-room building (`cadreg
     # render --walk 0.05 --seed 1`) the session held two copies 4.6 and 13.9 m from the truth, dropped one, and
