@@ -379,6 +379,9 @@ def summarize(outcomes: list[FrameOutcome]) -> dict:
         "max_ms": float(max(ms)) if ms else None,
         # Trust: how often `ok` is right, how many `ok` answers are wrong, success by confidence band.
         "ok_precision": float(s5[ok].mean()) if ok.any() else None,
+        # DESIGN §8's name, as the unique / repeated / corridor figures name theirs; "wrong_ok" is kept for the
+        # scripts that read it since the trust figures came in.
+        "ok_wrong": int((ok & ~s5).sum()),
         "wrong_ok": int((ok & ~s5).sum()),
         "reliability": reliability,
         "stage_ms": {s: {"p50": _stat([o.stage_ms.get(s, 0.0) for o in outcomes], 50),
@@ -473,7 +476,7 @@ def format_table(report: dict) -> str:
                      f"{f(s['median_rotation_deg'], 1, 2):>7s} {f(s['p90_rotation_deg'], 1, 2):>7s} "
                      f"{f(s['median_ms'], 1, 0):>7s} {f(s['p90_ms'], 1, 0):>7s} {f(s.get('p99_ms'), 1, 0):>7s} "
                      f"{f(s.get('max_ms'), 1, 0):>7s} {'-' if prec is None else f'{100 * prec:.1f}%':>7s} "
-                     f"{s.get('wrong_ok', 0):>6d}  {st}")
+                     f"{s.get('ok_wrong', 0):>6d}  {st}")
     for name, s in report["methods"].items():
         if s["stage_ms"]:
             parts = " ".join(f"{k}={f(v['p50'], 1, 0)}/{f(v['p90'], 1, 0)}" for k, v in s["stage_ms"].items())

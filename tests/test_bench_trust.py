@@ -21,7 +21,7 @@ def test_trust_figures_count_wrong_ok_answers_and_band_success() -> None:
             FrameOutcome(3, "ok", 0.02, 1.0, 10.0, confidence=0.92),
             FrameOutcome(4, "no_match", math.inf, math.inf, 10.0, confidence=0.0)]
     s = summarize(outs)
-    assert s["ok_precision"] == pytest.approx(2 / 3) and s["wrong_ok"] == 1
+    assert s["ok_precision"] == pytest.approx(2 / 3) and s["ok_wrong"] == s["wrong_ok"] == 1
     assert s["reliability"] == {"0.0-0.5": {"frames": 1, "success_5cm_5deg": 0.0, "ok": 0},
                                 "0.5-0.7": {"frames": 1, "success_5cm_5deg": 1.0, "ok": 0},
                                 "0.7-0.9": {"frames": 1, "success_5cm_5deg": 0.0, "ok": 1},
