@@ -77,6 +77,41 @@ def test_label_free_frames_are_placed_and_claimed(kitchen) -> None:
         assert r.diagnostics.method == "fallback:bbs" and r.confidence >= MC.min_ok_confidence
 
 
+def _as_other_sensors_give_it(frame):
+    """A real Kinect frame as other sensors and exports deliver theirs: (name, frame) at half resolution (a
+    320 × 240 depth camera), with its depth in 1/5000 m (TUM RGB-D's units) and grey colour, with 60 % of its depth
+    missing in 16-pixel blocks (dark or shiny surfaces), and with 1296 × 968 colour (ScanNet's colour camera)."""
+    from PIL import Image
+
+    def resized(image, width, height):
+        return np.asarray(Image.fromarray(image).resize((width, height), Image.BILINEAR))
+
+    half_K = frame.depth_intrinsics.scaled_to(320, 240)
+    blocks = np.random.default_rng(0).random((frame.depth.shape[0] // 16, frame.depth.shape[1] // 16)) < 0.6
+    grey = np.repeat(frame.color.mean(axis=2, keepdims=True), 3, axis=2).astype(np.uint8)
+    return [
+        ("half resolution", replace(frame, depth=frame.depth[::2, ::2], color=resized(frame.color, 320, 240),
+                                    depth_intrinsics=half_K, color_intrinsics=frame.color_intrinsics.scaled_to(320, 240))),
+        ("1/5000 m, grey", replace(frame, depth=(frame.depth.astype(np.uint32) * 5).clip(0, 65535).astype(np.uint16),
+                                   depth_scale=5000.0, color=grey)),
+        ("60 % holes", replace(frame, depth=np.where(np.kron(blocks, np.ones((16, 16), bool)), 0, frame.depth)
+                               .astype(np.uint16))),
+        ("1296 x 968 colour", replace(frame, color=resized(frame.color, 1296, 968),
+                                      color_intrinsics=frame.color_intrinsics.scaled_to(1296, 968))),
+    ]
+
+
+@pytest.mark.realdata
+def test_real_frames_as_other_sensors_give_them_are_placed_as_the_kinects(kitchen) -> None:
+    loc, frames = kitchen
+    for i in (47, 147):
+        frame, T_true = frames.load(i)
+        for name, variant in _as_other_sensors_give_it(replace(frame, labels=None)):
+            r = loc.localize(variant)
+            te, re_ = pose_errors(r.T_map_camera, T_true) if r.T_map_camera is not None else (np.inf, np.inf)
+            assert r.status == Status.OK and te <= 0.05 and re_ <= 5.0, (i, name, r.status, te, re_, r.diagnostics.notes)
+
+
 @pytest.mark.realdata
 def test_a_frame_that_looks_partly_past_the_map_is_claimed_for_what_the_map_covers(kitchen) -> None:
     loc, frames = kitchen
