@@ -22,8 +22,9 @@ def register(sub) -> None:
                                    "(run with OMP_NUM_THREADS=1 for one-core figures).")
     p.add_argument("--site", required=True, type=Path, help="site bundle directory")
     p.add_argument("--frames", required=True, type=Path, help="recorded frames folder (poses = ground truth)")
-    p.add_argument("--method", action="append", choices=METHODS, metavar="NAME",
-                   help=f"repeatable; one of {', '.join(METHODS)} (default: cadreg)")
+    p.add_argument("--method", action="extend", nargs="+", choices=METHODS, metavar="NAME",
+                   help=f"one or more (`--method a b` or `--method a --method b`) of {', '.join(METHODS)} "
+                        "(default: cadreg)")
     p.add_argument("--range", dest="index_range", default=None, metavar="A:B",
                    help="only frames whose number i has A <= i < B (e.g. 250:500 for 7-Scenes queries)")
     p.add_argument("--limit", type=int, default=None, help="first N frames only (after --range)")
@@ -106,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise ConfigError(f"--range must be A:B with integers, got {args.index_range!r}") from exc
         frames.indices = [i for i in frames.indices if a <= i < b]
-    methods = args.method or ["cadreg"]
+    methods = list(dict.fromkeys(args.method or ["cadreg"]))  # a method named twice runs once
     config = LocalizeConfig() if args.localize_config is None else load_localize_config(args.localize_config)
     if args.map_points:
         config = config.model_copy(update={"refine": RefineConfig(**{**config.refine.model_dump(), "map_points": args.map_points})})
