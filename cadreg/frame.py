@@ -13,6 +13,7 @@ import numpy as np
 from .camera import CameraIntrinsics
 from .errors import InvalidFrame
 from .geometry import is_rigid
+from .labels import label_set_name
 from .site.regions import SearchRegion
 
 # Fields of view of real depth and colour cameras: telephoto phones ~25°, Kinect / RealSense / Structure 55–90°,
@@ -84,6 +85,7 @@ class Frame:
                 f"color is {c.shape[1]}x{c.shape[0]} but its intrinsics say "
                 f"{self.color_intrinsics.width}x{self.color_intrinsics.height}"
             )
+        self.label_set = label_set_name(self.label_set)
         if self.labels is not None:
             lb = self.labels
             if not isinstance(lb, np.ndarray) or lb.ndim != 2 or lb.dtype not in (np.uint8, np.uint16):

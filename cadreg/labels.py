@@ -116,6 +116,12 @@ def shapenet_label_map() -> dict[int, str]:
     return {int(s): cls for s, (_, cls) in SHAPENET_SYNSETS.items()}
 
 
+def label_set_name(name: str) -> str:
+    """A label set's name as sites and frames key it: lower case (DESIGN §2 writes "NYU40", the bundles "nyu40";
+    a client's "NYU40" or "ScanNet20" names the same set)."""
+    return str(name).lower()
+
+
 def default_label_maps() -> LabelMap:
     """The label maps every site carries unless told otherwise."""
     return {"nyu40": nyu40_label_map(), "shapenet": shapenet_label_map()}

@@ -26,6 +26,7 @@ from pathlib import Path, PurePosixPath
 from typing import IO, Any
 
 from cadreg.errors import BundleIntegrityError, CadregError, InputError, InvalidFileError, PayloadTooLarge, UnknownSite
+from cadreg.labels import label_set_name
 from cadreg.site.bundle import DATA_FILES, OPTIONAL_FILES, FileChecks
 
 from .logs import log_event
@@ -90,7 +91,7 @@ def inspect_bundle(path: str | Path) -> SiteEntry:
     try:
         sizes = {key: int(counts[key]) for key in ("points", "nodes", "edges")}
         classes = tuple(str(c) for c in meta["classes"])
-        label_sets = tuple(sorted(str(k) for k in meta.get("label_maps", {})))
+        label_sets = tuple(sorted(label_set_name(k) for k in meta.get("label_maps", {})))
         raw_points = int(counts.get("raw_points", 0))
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise InvalidFileError(meta_path, f"malformed counts, classes or label_maps: {exc!r}") from None

@@ -13,6 +13,8 @@ from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, Strict, field_validator, model_validator
 
+from cadreg.labels import label_set_name
+
 WIRE_VERSION = 1
 MAX_TOP_K = 20
 MAX_SEARCH_REGIONS = 256
@@ -116,6 +118,11 @@ class FrameMeta(_Wire):
     @classmethod
     def _matrix4(cls, value: list[list[float]] | None) -> list[list[float]] | None:
         return _check_matrix4(value)
+
+    @field_validator("label_set")
+    @classmethod
+    def _label_set_name(cls, v: str) -> str:
+        return label_set_name(v)  # "NYU40" is the set the sites call "nyu40"
 
     @field_validator("gravity")
     @classmethod

@@ -16,6 +16,7 @@ import pytest
 from PIL import Image
 
 from cadreg.errors import InvalidFrame
+from cadreg.frame import Frame
 from service import codec
 from service.settings import Settings
 from test_service_support import LiveServer, free_port, load_frames, multipart, render_frames
@@ -124,6 +125,17 @@ def test_an_unknown_label_set_is_422_naming_the_known_ones(client, frames) -> No
         files, data = multipart(frame, meta_override={"label_set": "bogus"})
         body = _error(_post(client, files, data), 422, "invalid_frame")
         assert "nyu40" in body["message"]
+
+
+def test_a_label_set_is_named_in_any_case(client, frames) -> None:
+    # DESIGN §2 writes "NYU40", the sites key it "nyu40": a client's capitals name the same set, labels and all.
+    frame, T_true = frames[0]
+    assert frame.labels is not None
+    r = _post(client, *multipart(frame, meta_override={"label_set": "NYU40"}))
+    assert r.status_code == 200, r.text
+    result = r.json()
+    assert result["status"] == "ok" and result["diagnostics"]["scan_objects"], result["diagnostics"]
+    assert Frame(**{**frame.__dict__, "label_set": "NYU40"}).label_set == "nyu40"
 
 
 def test_a_duplicated_part_is_422_naming_it(client, frames) -> None:

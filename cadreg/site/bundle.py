@@ -39,7 +39,7 @@ from ..errors import BundleIntegrityError, ConfigError, InvalidFileError, Invali
 from ..io.bundle_files import (BundleWriter, FileStamp, file_stamp, map_npy, npy_bytes, read_bytes, read_json,
                                 sha256_bytes, sha256_file)
 from ..io.ply import release_pages
-from ..labels import labels_to_class_index
+from ..labels import label_set_name, labels_to_class_index
 from ..pointset import MappedRows, PointSet
 from .graph import ObjectNode, SemanticGraph  # noqa: F401  (ObjectNode is part of this module's API)
 from .regions import Region, from_manifest, region_from_points, to_manifest
@@ -359,7 +359,7 @@ class Site:
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise InvalidFileError(root / "graph.json", f"malformed: {exc!r}") from exc
         try:
-            label_maps = {str(k): {int(i): str(c) for i, c in v.items()} for k, v in meta["label_maps"].items()}
+            label_maps = {label_set_name(k): {int(i): str(c) for i, c in v.items()} for k, v in meta["label_maps"].items()}
             classes = [str(c) for c in meta["classes"]]
         except (TypeError, ValueError, AttributeError) as exc:
             raise InvalidFileError(meta_path, f"malformed label_maps or classes: {exc!r}") from exc
