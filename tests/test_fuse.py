@@ -18,7 +18,7 @@ from cadreg.io.frames import FramesWriter, RecordedFrames
 from cadreg.render import LabelledMesh, render_frames
 from cadreg.site.bundle import Site
 from cadreg.localize.localizer import Localizer
-from cadreg.site.fuse import (color_in_depth_camera, fuse_frames, fuse_site, map_accuracy, pose_offset,
+from cadreg.site.fuse import (color_in_depth_camera, frames_sha256, fuse_frames, fuse_site, map_accuracy, pose_offset,
                               pose_offset_by_window)
 
 
@@ -137,6 +137,25 @@ def test_cli_site_fuse_with_labels(rendered_labelled, tmp_path: Path, capsys) ->
     classes = {n.cls for n in site.graph.nodes}
     assert "chair" in classes and all(n.source == "cluster" for n in site.graph.nodes)
     assert site.manifest["inputs"]["frames"]["count"] == 8
+    # DESIGN §3: the bundle names its inputs with their sha256, here the digest of the fused frames' files
+    assert site.manifest["inputs"]["frames"]["sha256"] == frames_sha256(RecordedFrames.open(out), range(8))
+
+
+def test_the_digest_of_fused_frames_follows_their_files_not_their_folder(rendered_labelled, tmp_path: Path) -> None:
+    import shutil
+
+    out, _ = rendered_labelled
+    frames = RecordedFrames.open(out)
+    digest = frames_sha256(frames, range(4))
+    assert len(digest) == 64 and digest != frames_sha256(frames, range(5))  # another frame: another digest
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    assert frames_sha256(RecordedFrames.open(copy), range(4)) == digest  # the same files elsewhere
+    pose = copy / "pose" / "2.txt"
+    pose.write_text(pose.read_text().replace("0.", "0.0", 1))  # the same pose, written otherwise
+    assert frames_sha256(RecordedFrames.open(copy), range(4)) != digest
+    (copy / "intrinsic" / "intrinsic_depth.txt").write_text("500 0 320\n0 500 240\n0 0 1\n")  # the calibration too
+    assert frames_sha256(RecordedFrames.open(copy), range(2)) != frames_sha256(frames, range(2))
 
 
 def test_color_registration_and_errors(tmp_path: Path) -> None:

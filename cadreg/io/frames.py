@@ -138,6 +138,7 @@ class RecordedFrames:
     depth_scale : depth units per metre; label_set : name of the label ids in label images.
     depth_range_m : the depth camera's range (metres, frames.json's "depth_range_m"), None when the folder does not
     say (`Frame.depth_range_m`).
+    calibration : the folder's files that describe its cameras (frames.json, intrinsic/*.txt, camera-intrinsics.txt).
     """
 
     def __init__(
@@ -153,6 +154,7 @@ class RecordedFrames:
         label_set: str,
         files: dict[int, dict[str, Path | None]],
         depth_range_m: float | None = None,
+        calibration: tuple[Path, ...] = (),
     ) -> None:
         self.root = Path(root)
         self.layout = layout
@@ -164,6 +166,7 @@ class RecordedFrames:
         self.depth_scale = float(depth_scale)
         self.label_set = label_set
         self.depth_range_m = depth_range_m
+        self.calibration = tuple(calibration)
         self._files = files
 
     # construction ------------------------------------------------------------------------------------------
@@ -236,6 +239,8 @@ class RecordedFrames:
             T_color_depth=invert_T(T_rig_color) @ T_rig_depth, T_rig_color=T_rig_color,
             depth_scale=depth_scale, label_set=str(meta.get("label_set", "nyu40")), files=files,
             depth_range_m=depth_range_m,
+            calibration=tuple(p for p in (meta_path, *(intr / f"{n}.txt" for n in (
+                "intrinsic_depth", "intrinsic_color", "extrinsic_depth", "extrinsic_color"))) if p.is_file()),
         )
 
     @classmethod
@@ -266,7 +271,8 @@ class RecordedFrames:
         except InvalidFrame as exc:
             raise InvalidFileError(intr_path, f"bad camera description ({exc})") from exc
         # 7-Scenes colour is not registered to depth (a few pixels off); no calibration ships, so identity.
-        return cls(root, "7scenes", indices, depth_intr, color_intr, np.eye(4), np.eye(4), 1000.0, "nyu40", files)
+        return cls(root, "7scenes", indices, depth_intr, color_intr, np.eye(4), np.eye(4), 1000.0, "nyu40", files,
+                   calibration=(intr_path,))
 
     # access ------------------------------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -280,6 +286,15 @@ class RecordedFrames:
             return self._files[int(i)]
         except (KeyError, ValueError, TypeError):
             raise InvalidFileError(self.root, f"no frame with index {i} (have {len(self.indices)} frames)") from None
+
+    def source_files(self, indices: list[int]) -> list[Path]:
+        """The files frames `indices` are read from: the calibration, then each frame's depth, colour, labels and
+        pose (those it has), in that order."""
+        out = list(self.calibration)
+        for i in indices:
+            entry = self._entry(i)
+            out += [entry[k] for k in ("depth", "color", "label", "pose") if entry[k] is not None]  # type: ignore[misc]
+        return out
 
     def has_labels(self) -> bool:
         """True when the folder holds label images (checked on the first frame)."""

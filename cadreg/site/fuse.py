@@ -16,6 +16,7 @@ and each point takes the majority of the labels it sees where its depth agrees w
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -28,6 +29,7 @@ from ..config import AutoCadConfig, FrameConfig, FuseConfig, SiteBuildConfig
 from ..errors import ConfigError
 from ..frame import Frame
 from ..geometry import invert_T, rotation_angle_deg, transform_points
+from ..io.bundle_files import sha256_bytes, sha256_file
 from ..io.frames import RecordedFrames
 from ..localize.gravity import estimate_up_from_normals, map_up_axis
 from ..localize.points import frame_to_points, voxel_downsample
@@ -196,6 +198,14 @@ def vote_labels(
     return labels
 
 
+def frames_sha256(frames: RecordedFrames, indices: Sequence[int]) -> str:
+    """The sha256 of the frames a site is fused from (DESIGN §3: a bundle names its inputs with their sha256), over
+    the sorted "file:sha256" lines of their files, named relative to the folder: the same frames copied elsewhere
+    give the same digest."""
+    lines = sorted(f"{os.path.relpath(p, frames.root)}:{sha256_file(p)}" for p in frames.source_files(list(indices)))
+    return sha256_bytes("\n".join(lines).encode())
+
+
 def fuse_site(
     frames: RecordedFrames,
     indices: Sequence[int] | None = None,
@@ -228,7 +238,7 @@ def fuse_site(
     inputs = {
         "frames": {
             "path": str(frames.root), "layout": frames.layout, "indices": [int(indices[0]), int(indices[-1]) + 1],
-            "count": len(indices),
+            "count": len(indices), "sha256": frames_sha256(frames, indices),
         },
         "fusion": config.model_dump(),
     }
