@@ -64,7 +64,9 @@ def quat_wxyz_to_R(q: np.ndarray) -> np.ndarray:
 
 
 def R_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
-    x, y, z, w = _rotation().from_matrix(R).as_quat()
+    """3×3 rotation -> (w, x, y, z) unit quaternion with w ≥ 0 (of q and −q, the canonical one: a client comparing
+    answers' quaternions component by component sees one rotation as one quaternion)."""
+    x, y, z, w = _rotation().from_matrix(R).as_quat(canonical=True)
     return np.array([w, x, y, z])
 
 

@@ -13,7 +13,7 @@ from cadreg.camera import CameraIntrinsics
 from cadreg.config import FallbackConfig, LabelFreeConfig, LocalizeConfig, MatchConfig, RefineConfig
 from cadreg.errors import InvalidFrame
 from cadreg.frame import Frame
-from cadreg.geometry import make_T, pose_errors
+from cadreg.geometry import R_to_quat_wxyz, make_T, pose_errors, quat_wxyz_to_R
 from cadreg.localize import Localizer
 from cadreg.localize.picture import render_localization_png
 from cadreg.localize.synthetic import look_pose, make_scene, render_frame
@@ -76,8 +76,20 @@ def test_known_poses_are_recovered(scene, localizer) -> None:
         assert set(d.stage_ms) >= {"points", "cluster", "gravity", "match", "verify", "refine"}
         assert d.refinement.fitness > 0.9 and d.roi.radius_m == 3.0 and d.roi.points > 0
         assert 100 <= d.roi.frame_points <= d.frame_points
-        json.dumps(r.to_dict())  # JSON-able
+        wire = json.loads(json.dumps(r.to_dict()))  # JSON-able
+        q = np.array(wire["pose"]["quaternion_wxyz"])  # the answer's rotation, w >= 0 of q and -q
+        assert q[0] >= 0.0 and np.allclose(quat_wxyz_to_R(q), r.T_map_camera[:3, :3], atol=1e-9)
     assert exact >= 3
+
+
+def test_an_answers_quaternion_is_the_one_with_w_not_negative() -> None:
+    # turns about z past a half turn, where the quaternion's w would come out negative, and some tilted ones
+    rng = np.random.default_rng(0)
+    turns = [make_T(np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]), np.zeros(3))[:3, :3]
+             for a in np.radians([200.0, 270.0, 359.0])]
+    for R in turns + [quat_wxyz_to_R(q) for q in rng.normal(size=(20, 4))]:
+        q = R_to_quat_wxyz(R)
+        assert q[0] >= 0.0 and np.isclose(np.linalg.norm(q), 1.0) and np.allclose(quat_wxyz_to_R(q), R, atol=1e-12)
 
 
 def test_the_region_of_interest_bounds_the_refinement(scene) -> None:
