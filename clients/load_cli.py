@@ -129,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
                                    lost_after_s=args.lost_after, warmup=args.warmup)
         except ValueError as exc:
             raise SystemExit(f"cadreg load: {exc}") from None
-        frames = _encode(args, folder, None)
+        frames = _encode(args, folder, args.n)  # each device plays the first n (the sequence cycled past its end)
     else:
         if args.concurrency is None and args.rate is None:
             args.concurrency = 4

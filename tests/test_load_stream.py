@@ -72,3 +72,13 @@ def test_http_stream_plays_several_devices(server, redkitchen_dir: Path, tmp_pat
     assert summary["sent"] == 22 and summary["devices"] == 2 and summary["lost"] == 0
     assert summary["answered"] == 22 and summary["tracked"] >= 16, summary
     assert code == 0
+
+
+def test_a_stream_of_n_frames_reads_only_those(server, redkitchen_dir: Path, tmp_path: Path, capsys, caplog) -> None:
+    # --n 4 of the whole 500-frame folder: four frames read and encoded (not 147 MB of them), played in order
+    caplog.set_level("INFO", logger="cadreg.load")
+    code, summary, _ = _run(["--url", server.url, "--site", SITE_ID, "--frames", str(redkitchen_dir), "--stream",
+                             "--range", "250:500", "--n", "4", "--rate", "5"], tmp_path / "n.json", capsys)
+    assert "encoded 4 frames" in caplog.text, caplog.text
+    assert summary["sent"] == 3 and summary["warmup"]["frames"] == 1 and summary["answered"] == 3, summary
+    assert code == 0
