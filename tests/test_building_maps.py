@@ -193,6 +193,22 @@ def test_tied_rooms_beyond_the_budget_are_reported_unverified_and_the_answer_is_
     assert any("not verified" in n for n in one.diagnostics.notes)
 
 
+def test_an_uncertain_answer_lists_its_close_rivals_beyond_top_k(twin_rooms_dir: Path, twin_shared_view) -> None:
+    # The view both rooms show, without labels: the label-free pose and the copy of its view in the other room tie.
+    # Held to a pose spread no pose meets, the answer is `uncertain` (it lies nowhere in particular, nor does its
+    # rival), and the rival room stays listed, as an `ambiguous` answer lists it, even past top_k = 1.
+    frame, _ = twin_shared_view
+    site = Site.load(twin_rooms_dir)
+    loose = Localizer.from_site(site, LocalizeConfig(match=MatchConfig(max_pose_std_m=1e-5)))
+    r = loose.localize(replace(frame, labels=None), top_k=1)
+    assert r.status == Status.UNCERTAIN and r.T_map_camera is None, r.diagnostics.notes
+    assert {h.region for h in r.hypotheses} == {"a", "b"}, [(h.region, h.source) for h in r.hypotheses]
+    assert r.hypotheses[0].T_map_camera is not None
+    # the same frame held to the usual spread: `ambiguous`, the same two rooms
+    tied = Localizer.from_site(site).localize(replace(frame, labels=None), top_k=1)
+    assert tied.status == Status.AMBIGUOUS and {h.region for h in tied.hypotheses} == {"a", "b"}
+
+
 def test_region_structures_are_bounded_by_the_cache(twin_rooms_dir: Path, twin_shared_view) -> None:
     frame, _ = twin_shared_view
     loc = Localizer.from_site(Site.load(twin_rooms_dir), LocalizeConfig(regions=RegionConfig(max_cached=1)))

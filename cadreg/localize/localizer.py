@@ -725,8 +725,16 @@ class Localizer(RefineStage, BuildingViews, FallbackStage):
             # Listed once: the candidates at the refined pose (the winner's coarse pose, a few millimetres off) are
             # not listed beside it.
             best = replace(winner.hypothesis, T_map_camera=T)
-            others = self._apart_from(hypotheses, [T])
-            return LocalizationResult(Status.UNCERTAIN, None, confidence=trust, hypotheses=[best] + others[:top_k - 1],
+            others = self._apart_from(hypotheses, [T])[:top_k - 1]
+            if choice.has_rival and choice.margin < ambiguity_margin:
+                # A close rival is as much the frame's place as the answer: listed, as an ambiguous answer lists
+                # every one, beyond top_k. (A label-free view of a 16-room building with moved furniture, the pose
+                # too loose to be `ambiguous`, listed five search leaves and left out three copies of its view that
+                # showed it better, the true room's 4 cm from the truth.)
+                listed = {id(h) for h in others}
+                others += [h for h in self._apart_from(self._rivals(candidates, choice) + scan.unverified, [T])
+                           if id(h) not in listed]
+            return LocalizationResult(Status.UNCERTAIN, None, confidence=trust, hypotheses=[best] + others,
                                       diagnostics=diag, frame_id=frame_id)
         if status == Status.AMBIGUOUS:
             hypotheses += self._rivals(candidates[top_k:], choice) + scan.unverified
