@@ -6,7 +6,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from .load import LoadRun
+from .load import LoadRun, percentile
 
 
 def _ms(value: float | None) -> str:
@@ -83,7 +83,7 @@ def plot_run(run: LoadRun, path: str | Path) -> Path:
     if lat:
         ax_h.hist(lat, bins=min(50, max(5, len(lat) // 5)), color="tab:blue")
         for q, style in ((50, "-"), (99, "--")):
-            v = sorted(lat)[min(len(lat) - 1, int(math.ceil(q / 100 * len(lat))) - 1)]
+            v = percentile(lat, q)  # as the table and the JSON give it
             ax_h.axvline(v, color="k", linestyle=style, linewidth=1, label=f"p{q} {v:.0f} ms")
         ax_h.legend()
     ax_h.set_xlabel("latency (ms)")

@@ -137,6 +137,20 @@ def test_json_document_has_the_contract_keys(tmp_path: Path) -> None:
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_the_plot_marks_the_percentiles_the_table_gives(tmp_path: Path, monkeypatch) -> None:
+    import matplotlib.axes
+
+    run = asyncio.run(run_load(FakeTarget(), _frames(3), LoadPlan(concurrency=3, n=40)))
+    for k, r in enumerate(run.records):  # 40 spread latencies: p99 falls between the two largest
+        r.latency_ms = 10.0 + k * (k % 7)
+    marked: list[float] = []
+    real = matplotlib.axes.Axes.axvline
+    monkeypatch.setattr(matplotlib.axes.Axes, "axvline", lambda ax, x=0, *a, **k: marked.append(x) or real(ax, x, *a, **k))
+    plot_run(run, tmp_path / "lat.png")
+    latency = summarize(run)["latency_ms"]
+    assert marked == [latency["p50"], latency["p99"]] and latency["p99"] < latency["max"]
+
+
 def test_requests_that_never_answer_are_cancelled_at_the_drain_timeout() -> None:
     target = FakeTarget(service_s=30.0)
     run = asyncio.run(run_load(target, _frames(1), LoadPlan(rate_hz=20, n=3, drain_timeout_s=0.3)))
