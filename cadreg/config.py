@@ -320,6 +320,11 @@ class LabelFreeConfig(_Section):
     keep_ratio: float = Field(0.85, gt=0, le=1, description="leaves scoring at least this share of the best are "
                               "hypotheses (rivals are kept for the verification to judge)")
     candidates: int = Field(5, ge=1, description="distinct best leaves pulled in by the coarse GICP")
+    exact_leaves: int = Field(3, ge=0, description="distinct leaves taken besides, the best of the search's leaves by "
+                              "the frame's score on the site's exact distance field (MatchConfig.score_tau_m): on a "
+                              "close view the search's bounds tie among many leaves, a small patch fitting anywhere "
+                              "at its coarse cells, and the exact field tells them apart (in a one-room site they "
+                              "join the second look's reserve)")
     reserve: int = Field(20, ge=0, description="in a one-room site, the next distinct leaves kept for a second look "
                          "when the answer's colours are not the map's (MatchConfig.min_chroma_correlation): those "
                          "at which the frame's colours follow the map's are pulled in and refined as well")

@@ -79,6 +79,61 @@ def test_search_recovers_a_synthetic_pose() -> None:
     assert abs(np.degrees(poses[0, 0]) - 30.0) < 3.1 and np.linalg.norm(poses[0, 1:] - cam) < 0.15
 
 
+def test_leaves_the_search_ties_on_are_taken_besides_by_the_exact_score() -> None:
+    # A view of the floor alone fits the floor anywhere: the search's leaves all but tie, and its distinct best are
+    # a matter of a few points' luck. A few more are taken by a finer score (here: nearness to another place of the
+    # floor), the search's own choice kept first and counted as taken.
+    rng = np.random.default_rng(3)
+    room = _room(rng)
+    pyr = GridPyramid(DistanceField(room, voxel_m=0.05), room, np.array([0.0, 0.0, 1.0]), voxel_m=0.1, levels=4)
+    cam = np.array([1.3, 1.1, 1.4])
+    floor = room[(room[:, 2] == 0.0) & (np.linalg.norm(room[:, :2] - cam[:2], axis=1) < 0.5)]
+    poses, scores, _ = pyr.search(floor - cam, np.radians(np.arange(0, 360, 30.0)), max_nodes=4000)
+    assert np.sum(scores >= 0.98 * scores[0]) > 50  # all but tied
+    there = np.array([2.2, 2.4, 1.4])
+    near = lambda R, t: -np.linalg.norm(t - there, axis=1)  # noqa: E731
+    kw = dict(count=3, min_translation_m=0.3, min_rotation_deg=15.0)
+    plain = pyr.hypotheses(poses, scores, np.eye(3), **kw)
+    more = pyr.hypotheses(poses, scores, np.eye(3), exact=near, extra=2, **kw)
+    assert len(plain) == 3 and len(more) == 5
+    assert np.allclose(more.t[:3], plain.t) and np.allclose(more.R[:3], plain.R)  # the search's choice first
+    closest = np.min(np.linalg.norm(poses[:3000, 1:] - there, axis=1))
+    assert np.linalg.norm(more.t[3] - there) == pytest.approx(closest)  # then the best by the finer score
+    assert np.min(np.linalg.norm(plain.t - there, axis=1)) > closest + 0.3
+    assert len(pyr.hypotheses(poses, scores, np.eye(3), exact=near, extra=0, **kw)) == 3
+
+
+@pytest.mark.realdata
+def test_a_close_view_the_search_ties_on_is_placed_by_its_exact_leaves(scene0470_dir, scene0470_site_dir,
+                                                                      tmp_path) -> None:
+    # A hand-held close view of scene0470 without labels (a walk's frame, rendered again): its colours rule out the
+    # search's first answers, and the second look's reserve of leaves held the truth only among those the exact
+    # field ranks first (without them: `uncertain`, no pose claimed).
+    from conftest import scene0470_mesh
+
+    from cadreg.config import LabelFreeConfig, LocalizeConfig
+    from cadreg.geometry import nearest_rotation
+    from cadreg.io.frames import RecordedFrames
+    from cadreg.localize.localizer import Localizer
+    from cadreg.render.sequence import render_frames
+    from cadreg.result import Status
+    from cadreg.site.bundle import Site
+
+    T = np.array([[-0.631405, 0.435053, -0.641916, 0.575391], [0.77421, 0.306824, -0.553586, 1.13127],
+                  [-0.043884, -0.846515, -0.530553, 1.714361], [0.0, 0.0, 0.0, 1.0]])
+    T[:3, :3] = nearest_rotation(T[:3, :3])
+    render_frames(scene0470_mesh(scene0470_dir), tmp_path / "view", 0, poses=[T], seed=1)
+    frame, T_true = RecordedFrames.open(tmp_path / "view").load(0)
+    frame = replace(frame, labels=None)
+    site = Site.load(scene0470_site_dir)
+    r = Localizer.from_site(site).localize(frame)
+    assert r.status.value == "ok", r.diagnostics.notes
+    te, re_ = pose_errors(r.T_map_camera, T_true)
+    assert te < 0.05 and re_ < 5.0
+    without = Localizer.from_site(site, LocalizeConfig(label_free=LabelFreeConfig(exact_leaves=0))).localize(frame)
+    assert without.status == Status.UNCERTAIN
+
+
 def test_a_stored_pyramid_comes_back_as_built_and_serves_only_the_settings_it_was_built_with() -> None:
     """A bundle stores a building's pyramid (`to_stored`) and a worker maps it (`from_stored`) when its up and
     settings are those it was built with: the same grids, the same layout, the same search. Its layout is derived

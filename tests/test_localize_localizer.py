@@ -227,10 +227,13 @@ def test_a_pose_whose_depth_disagrees_with_the_map_is_not_ok(scene0470_site_dir,
     frame, T_true = RecordedFrames.open(tmp_path / "frames").load(25)
     frame = replace(frame, labels=None)
     # That pose's colours are not the map's either, and the second look now finds the right one (an `ok` answer
-    # 1 mm off); without it, the depth gate holds the wrong one back.
+    # 1 mm off), as do the search's leaves the exact field ranks first, verified at once when no reserve is kept;
+    # without both, the depth gate holds the wrong one back.
     r = Localizer.from_site(site).localize(frame)
     assert r.status == Status.OK and pose_errors(r.T_map_camera, T_true)[0] < 0.05, r.diagnostics.notes
-    loc = Localizer.from_site(site, LocalizeConfig(label_free=LabelFreeConfig(reserve=0)))
+    first = Localizer.from_site(site, LocalizeConfig(label_free=LabelFreeConfig(reserve=0))).localize(frame)
+    assert first.status == Status.OK and pose_errors(first.T_map_camera, T_true)[0] < 0.05, first.diagnostics.notes
+    loc = Localizer.from_site(site, LocalizeConfig(label_free=LabelFreeConfig(reserve=0, exact_leaves=0)))
     r = loc.localize(frame)
     assert r.status == Status.UNCERTAIN and r.T_map_camera is None
     T_wrong = r.hypotheses[0].T_map_camera

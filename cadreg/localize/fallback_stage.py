@@ -182,7 +182,8 @@ class FallbackStage:
         count = lf.candidates if len(self.maps) == 1 else lf.candidates * (1 + self.config.regions.max_verified)
         reserve = lf.reserve if len(self.maps) == 1 else 0
         hyp = pyr.hypotheses(poses, scores, R_up, count=count + reserve, min_translation_m=mc.distinct_translation_m,
-                             min_rotation_deg=mc.distinct_rotation_deg)
+                             min_rotation_deg=mc.distinct_rotation_deg, extra=lf.exact_leaves,
+                             exact=lambda R, t: score_poses(self.field, scan.score_xyz, R, t, tau_m=mc.score_tau_m))
         if reserve:
             # The leaves after the first `count` are kept for the second look (`Localizer._second_look`): the
             # choice is greedy in score order, so the first `count` are those a search of `count` gives.
