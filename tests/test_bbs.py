@@ -127,7 +127,7 @@ def test_a_close_view_the_search_ties_on_is_placed_by_its_exact_leaves(scene0470
     frame = replace(frame, labels=None)
     site = Site.load(scene0470_site_dir)
     r = Localizer.from_site(site).localize(frame)
-    assert r.status.value == "ok", r.diagnostics.notes
+    assert r.status == Status.OK, r.diagnostics.notes
     te, re_ = pose_errors(r.T_map_camera, T_true)
     assert te < 0.05 and re_ < 5.0
     without = Localizer.from_site(site, LocalizeConfig(label_free=LabelFreeConfig(exact_leaves=0))).localize(frame)

@@ -91,7 +91,8 @@ def _as_other_sensors_give_it(frame):
     grey = np.repeat(frame.color.mean(axis=2, keepdims=True), 3, axis=2).astype(np.uint8)
     return [
         ("half resolution", replace(frame, depth=frame.depth[::2, ::2], color=resized(frame.color, 320, 240),
-                                    depth_intrinsics=half_K, color_intrinsics=frame.color_intrinsics.scaled_to(320, 240))),
+                                    depth_intrinsics=half_K,
+                                    color_intrinsics=frame.color_intrinsics.scaled_to(320, 240))),
         ("1/5000 m, grey", replace(frame, depth=(frame.depth.astype(np.uint32) * 5).clip(0, 65535).astype(np.uint16),
                                    depth_scale=5000.0, color=grey)),
         ("60 % holes", replace(frame, depth=np.where(np.kron(blocks, np.ones((16, 16), bool)), 0, frame.depth)
@@ -109,7 +110,8 @@ def test_real_frames_as_other_sensors_give_them_are_placed_as_the_kinects(kitche
         for name, variant in _as_other_sensors_give_it(replace(frame, labels=None)):
             r = loc.localize(variant)
             te, re_ = pose_errors(r.T_map_camera, T_true) if r.T_map_camera is not None else (np.inf, np.inf)
-            assert r.status == Status.OK and te <= 0.05 and re_ <= 5.0, (i, name, r.status, te, re_, r.diagnostics.notes)
+            assert r.status == Status.OK and te <= 0.05 and re_ <= 5.0, (i, name, r.status, te, re_,
+                                                                         r.diagnostics.notes)
 
 
 @pytest.mark.realdata

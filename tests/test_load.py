@@ -145,7 +145,12 @@ def test_the_plot_marks_the_percentiles_the_table_gives(tmp_path: Path, monkeypa
         r.latency_ms = 10.0 + k * (k % 7)
     marked: list[float] = []
     real = matplotlib.axes.Axes.axvline
-    monkeypatch.setattr(matplotlib.axes.Axes, "axvline", lambda ax, x=0, *a, **k: marked.append(x) or real(ax, x, *a, **k))
+
+    def axvline(ax, x=0, *args, **kwargs):
+        marked.append(x)
+        return real(ax, x, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.axes.Axes, "axvline", axvline)
     plot_run(run, tmp_path / "lat.png")
     latency = summarize(run)["latency_ms"]
     assert marked == [latency["p50"], latency["p99"]] and latency["p99"] < latency["max"]

@@ -359,7 +359,8 @@ class Site:
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise InvalidFileError(root / "graph.json", f"malformed: {exc!r}") from exc
         try:
-            label_maps = {label_set_name(k): {int(i): str(c) for i, c in v.items()} for k, v in meta["label_maps"].items()}
+            label_maps = {label_set_name(k): {int(i): str(c) for i, c in v.items()}
+                          for k, v in meta["label_maps"].items()}
             classes = [str(c) for c in meta["classes"]]
         except (TypeError, ValueError, AttributeError) as exc:
             raise InvalidFileError(meta_path, f"malformed label_maps or classes: {exc!r}") from exc
